@@ -1,0 +1,37 @@
+//! One error type for the host: every variant names the file, and where it applies the field.
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum HostError {
+    #[error("{}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}: field `{field}`: {reason}", file.display())]
+    Field {
+        file: PathBuf,
+        field: String,
+        reason: String,
+    },
+    #[error("{}: {reason}", file.display())]
+    Invalid { file: PathBuf, reason: String },
+    #[error("core: {0}")]
+    Core(String),
+}
+
+impl HostError {
+    pub fn io(file: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        HostError::Io { file: file.into(), source }
+    }
+    pub fn field(file: impl Into<PathBuf>, field: impl Into<String>, reason: impl Into<String>) -> Self {
+        HostError::Field { file: file.into(), field: field.into(), reason: reason.into() }
+    }
+    pub fn invalid(file: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
+        HostError::Invalid { file: file.into(), reason: reason.into() }
+    }
+}
+
+pub type Result<T, E = HostError> = std::result::Result<T, E>;
