@@ -2,5 +2,6 @@
 
 pub mod dataset;
 pub mod error;
+pub mod io;
 
 pub use error::{HostError, Result};

@@ -1,0 +1,77 @@
+//! Output files are written to a temporary name beside the target and renamed when complete,
+//! so a crash or a kill never leaves half-written output.
+
+use crate::error::{HostError, Result};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+fn temp_name(path: &Path) -> PathBuf {
+    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    name.push(format!(".tmp{}", std::process::id()));
+    path.with_file_name(name)
+}
+
+/// Write `bytes` to `path` atomically (temporary file, fsync, rename). Creates parent folders.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| HostError::io(parent, e))?;
+    }
+    let tmp = temp_name(path);
+    let result = (|| {
+        let mut file = std::fs::File::create(&tmp)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    result.map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        HostError::io(path, e)
+    })
+}
+
+/// Encode an RGB8 (3 channels) or L8 (1 channel) image as PNG and write it atomically.
+pub fn write_png(path: &Path, width: u32, height: u32, channels: u8, pixels: &[u8]) -> Result<()> {
+    let color = match channels {
+        1 => image::ExtendedColorType::L8,
+        3 => image::ExtendedColorType::Rgb8,
+        4 => image::ExtendedColorType::Rgba8,
+        _ => return Err(HostError::invalid(path, format!("cannot write a PNG with {channels} channels"))),
+    };
+    if pixels.len() != width as usize * height as usize * channels as usize {
+        return Err(HostError::invalid(path, "pixel buffer does not match the image size"));
+    }
+    let mut encoded = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut encoded)
+        .write_image(pixels, width, height, color)
+        .map_err(|e| HostError::invalid(path, format!("PNG encoding failed: {e}")))?;
+    write_atomic(path, &encoded)
+}
+
+use image::ImageEncoder as _;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn atomic_write_replaces_and_leaves_no_temporary() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sub/out.bin");
+        write_atomic(&path, b"first").unwrap();
+        write_atomic(&path, b"second").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"second");
+        let names: Vec<_> = std::fs::read_dir(path.parent().unwrap()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+    }
+
+    #[test]
+    fn png_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.png");
+        let px: Vec<u8> = (0..2 * 3 * 3).map(|v| v as u8 * 10).collect();
+        write_png(&path, 2, 3, 3, &px).unwrap();
+        let img = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(img.as_raw(), &px);
+        assert!(write_png(&path, 2, 2, 3, &px).is_err());
+    }
+}
