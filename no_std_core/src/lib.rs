@@ -1,7 +1,62 @@
 //! orbit-nerf-core: a K-Planes radiance field trained inside one caller-provided byte arena.
+//!
+//! No heap, no panics on input, bit-identical results for the same config, frames and seed
+//! on every target. The host brings threads through [`Executor`]; the core never depends on
+//! which thread ran which chunk.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+mod arena;
 pub mod camera;
+pub mod config;
+pub mod field;
+pub mod frames;
+pub mod optim;
+pub mod render;
+pub mod rng;
+pub mod trainer;
 
 pub use camera::{Camera, Pose};
+pub use config::{Config, MemoryPlan, TexelUpdate};
 pub use glam;
+pub use trainer::{Executor, Sequential, StepReport, Trainer};
+
+/// Everything that can go wrong in the core; each names what was wrong.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Error {
+    /// A config field is out of range.
+    InvalidConfig { field: &'static str },
+    /// The arena is smaller than the memory plan.
+    ArenaTooSmall { needed: usize, got: usize },
+    /// A frame was rejected; `field` names the bad part.
+    InvalidFrame { field: &'static str },
+    /// A frame has more pixels than a slot holds.
+    FrameTooLarge { pixels: usize, capacity: usize },
+    /// Training needs at least one frame.
+    NoFrames,
+    /// A caller buffer has the wrong length.
+    BufferSize { what: &'static str, expected: usize, got: usize },
+    /// A checkpoint section is unknown or has the wrong size.
+    BadSection { name: &'static str, expected: usize, got: usize },
+}
+
+impl core::fmt::Display for Error {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            Error::InvalidConfig { field } => write!(f, "invalid config field `{field}`"),
+            Error::ArenaTooSmall { needed, got } => write!(f, "arena too small: {needed} bytes needed, {got} given"),
+            Error::InvalidFrame { field } => write!(f, "invalid frame: `{field}`"),
+            Error::FrameTooLarge { pixels, capacity } => {
+                write!(f, "frame has {pixels} pixels but a slot holds {capacity} (max_pixels_per_frame)")
+            }
+            Error::NoFrames => write!(f, "no frames to train on"),
+            Error::BufferSize { what, expected, got } => write!(f, "`{what}` has length {got}, expected {expected}"),
+            Error::BadSection { name, expected, got } => {
+                write!(f, "checkpoint section `{name}` has {got} bytes, expected {expected}")
+            }
+        }
+    }
+}
+
+#[cfg(feature = "std")]
+impl std::error::Error for Error {}

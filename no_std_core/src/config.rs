@@ -1,0 +1,444 @@
+//! The configuration of a field and its trainer, validated at construction, and the `const fn`
+//! memory plan that sizes every part of the arena from it.
+
+use crate::Error;
+
+/// At most this many plane scales (K-Planes uses four).
+pub const MAX_SCALES: usize = 4;
+/// Samples processed together through the MLPs (structure-of-arrays width).
+pub const LANES: usize = 64;
+/// At most this many chunks per batch.
+pub const MAX_CHUNKS: usize = 16;
+/// Every arena part starts on a multiple of this many bytes.
+pub const PART_ALIGN: usize = 64;
+/// Colour MLP output channels.
+pub const RGB: usize = 3;
+/// Per-frame pose-correction parameters: translation (3) and quaternion vector part (3).
+pub const POSE_PARAMS: usize = 6;
+
+/// How small plane updates survive storage in f16.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum TexelUpdate {
+    /// Keep an f32 master copy of every texel; the f16 plane is its rounding.
+    MasterCopy,
+    /// Round each updated f32 value to one of its two f16 neighbours with probability given by
+    /// the distance (seeded), so the expected stored value equals the exact update.
+    StochasticRounding,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Config {
+    // --- field ---
+    /// Number of plane scales in use (1..=MAX_SCALES).
+    pub scales: u8,
+    /// Plane side length per scale, in texels (2..=1024).
+    pub resolutions: [u16; MAX_SCALES],
+    /// Features per plane texel (per scale), a multiple of 8 up to 64.
+    pub features: u16,
+    /// Hidden width of the density MLP.
+    pub density_hidden: u16,
+    /// Geometry features the density MLP hands to the colour MLP.
+    pub geo_features: u16,
+    /// Width of the colour MLP's two hidden layers.
+    pub colour_hidden: u16,
+    /// Spherical-harmonics degree of the view encoding (1..=4, giving degree² values).
+    pub sh_degree: u8,
+    /// Per-frame appearance embedding fed to the colour MLP (0 disables it).
+    pub embedding_dim: u16,
+    /// Planes start uniform in [init_low, init_high] (K-Planes: 0.1, 0.5).
+    pub init_low: f32,
+    pub init_high: f32,
+
+    // --- scene and rendering ---
+    pub aabb_min: [f32; 3],
+    pub aabb_max: [f32; 3],
+    /// Colour behind the scene, composited where rays leave the box.
+    pub background: [f32; 3],
+    /// Occupancy grid cells per side.
+    pub occupancy_res: u16,
+    /// Refresh the occupancy grid every this many steps.
+    pub occupancy_every: u32,
+    /// A cell stays occupied while its (decayed, max-pooled) density exceeds this.
+    pub occupancy_threshold: f32,
+    /// Per-refresh decay of the running density of each cell.
+    pub occupancy_decay: f32,
+    /// Ray-marching steps across the box diagonal (sets the sample spacing).
+    pub march_steps: u16,
+    /// Ray-marching stops after this many samples per ray.
+    pub max_samples_per_ray: u16,
+    /// A ray stops once its transmittance falls below this.
+    pub min_transmittance: f32,
+
+    // --- capacities ---
+    pub max_frames: u16,
+    /// Pixel capacity of one frame slot (width * height of the largest frame).
+    pub max_pixels_per_frame: u32,
+    /// Rays sampled per training step.
+    pub rays_per_batch: u32,
+    /// The batch is cut into this many equal chunks, each with its own buffers; the host
+    /// runs chunks on threads, and results never depend on which thread ran which chunk.
+    pub chunks: u8,
+    /// Sample capacity of one chunk. A ray whose samples do not fit is dropped, with every
+    /// ray after it in the chunk (deterministic truncation, counted in the step report).
+    pub samples_per_chunk: u32,
+
+    // --- optimisation ---
+    pub steps: u32,
+    pub warmup_steps: u32,
+    pub learning_rate: f32,
+    /// The cosine schedule ends at learning_rate * final_lr_factor.
+    pub final_lr_factor: f32,
+    pub adam_beta1: f32,
+    pub adam_beta2: f32,
+    pub adam_eps: f32,
+    pub texel_update: TexelUpdate,
+    /// Pose corrections learn at pose_lr_factor * the field's rate (the paper's beta <= 0.01).
+    pub pose_lr_factor: f32,
+    /// Learn a pose correction per frame.
+    pub pose_correction: bool,
+    pub seed: u64,
+}
+
+impl Config {
+    /// A CPU-sized K-Planes model for a NeRF-synthetic scene at about 100 px.
+    pub const DEFAULT: Config = Config {
+        scales: 3,
+        resolutions: [32, 64, 128, 0],
+        features: 16,
+        density_hidden: 64,
+        geo_features: 15,
+        colour_hidden: 64,
+        sh_degree: 4,
+        embedding_dim: 0,
+        init_low: 0.1,
+        init_high: 0.5,
+        aabb_min: [-1.5; 3],
+        aabb_max: [1.5; 3],
+        background: [1.0; 3],
+        occupancy_res: 64,
+        occupancy_every: 16,
+        occupancy_threshold: 0.1,
+        occupancy_decay: 0.95,
+        march_steps: 512,
+        max_samples_per_ray: 256,
+        min_transmittance: 1e-4,
+        max_frames: 128,
+        max_pixels_per_frame: 128 * 128,
+        rays_per_batch: 4096,
+        chunks: 8,
+        samples_per_chunk: 16 * 1024,
+        steps: 5000,
+        warmup_steps: 128,
+        learning_rate: 0.01,
+        final_lr_factor: 0.03,
+        adam_beta1: 0.9,
+        adam_beta2: 0.99,
+        adam_eps: 1e-15,
+        texel_update: TexelUpdate::MasterCopy,
+        pose_lr_factor: 0.01,
+        pose_correction: false,
+        seed: 0,
+    };
+
+    pub const fn density_inputs(&self) -> usize {
+        self.scales as usize * self.features as usize
+    }
+    pub const fn density_outputs(&self) -> usize {
+        1 + self.geo_features as usize
+    }
+    pub const fn sh_values(&self) -> usize {
+        self.sh_degree as usize * self.sh_degree as usize
+    }
+    pub const fn colour_inputs(&self) -> usize {
+        self.sh_values() + self.geo_features as usize + self.embedding_dim as usize
+    }
+    /// Texels of all planes (3 per scale).
+    pub const fn texels(&self) -> usize {
+        let mut n = 0;
+        let mut s = 0;
+        while s < self.scales as usize {
+            let r = self.resolutions[s] as usize;
+            n += 3 * r * r;
+            s += 1;
+        }
+        n
+    }
+    pub const fn plane_params(&self) -> usize {
+        self.texels() * self.features as usize
+    }
+    pub const fn rays_per_chunk(&self) -> usize {
+        self.rays_per_batch as usize / self.chunks as usize
+    }
+    pub const fn occupancy_cells(&self) -> usize {
+        let r = self.occupancy_res as usize;
+        r * r * r
+    }
+    /// Per-frame learnable parameters: appearance embedding and pose correction.
+    pub const fn frame_params(&self) -> usize {
+        self.embedding_dim as usize + POSE_PARAMS
+    }
+    pub const fn mlp(&self) -> MlpLayout {
+        MlpLayout::new(self)
+    }
+
+    /// Check every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), Error> {
+        let bad = |field: &'static str| Err(Error::InvalidConfig { field });
+        if self.scales == 0 || self.scales as usize > MAX_SCALES {
+            return bad("scales");
+        }
+        for s in 0..self.scales as usize {
+            if !(2..=1024).contains(&self.resolutions[s]) {
+                return bad("resolutions");
+            }
+        }
+        if self.features == 0 || self.features % 8 != 0 || self.features > 64 {
+            return bad("features");
+        }
+        if !(1..=256).contains(&self.density_hidden) {
+            return bad("density_hidden");
+        }
+        if !(1..=64).contains(&self.geo_features) {
+            return bad("geo_features");
+        }
+        if !(1..=256).contains(&self.colour_hidden) {
+            return bad("colour_hidden");
+        }
+        if !(1..=4).contains(&self.sh_degree) {
+            return bad("sh_degree");
+        }
+        if self.embedding_dim > 128 {
+            return bad("embedding_dim");
+        }
+        if !(self.init_low.is_finite() && self.init_high.is_finite() && self.init_low <= self.init_high) {
+            return bad("init_low");
+        }
+        for a in 0..3 {
+            if !(self.aabb_min[a].is_finite() && self.aabb_max[a].is_finite()) || self.aabb_max[a] <= self.aabb_min[a] {
+                return bad("aabb");
+            }
+            if !(0.0..=1.0).contains(&self.background[a]) {
+                return bad("background");
+            }
+        }
+        if !(4..=512).contains(&self.occupancy_res) {
+            return bad("occupancy_res");
+        }
+        if self.occupancy_every == 0 {
+            return bad("occupancy_every");
+        }
+        if !(self.occupancy_threshold.is_finite() && self.occupancy_threshold >= 0.0) {
+            return bad("occupancy_threshold");
+        }
+        if !(self.occupancy_decay.is_finite() && (0.0..=1.0).contains(&self.occupancy_decay)) {
+            return bad("occupancy_decay");
+        }
+        if !(8..=8192).contains(&self.march_steps) {
+            return bad("march_steps");
+        }
+        if self.max_samples_per_ray == 0 || self.max_samples_per_ray as u32 > self.samples_per_chunk {
+            return bad("max_samples_per_ray");
+        }
+        if !(self.min_transmittance.is_finite() && (0.0..1.0).contains(&self.min_transmittance)) {
+            return bad("min_transmittance");
+        }
+        if self.max_frames == 0 {
+            return bad("max_frames");
+        }
+        if self.max_pixels_per_frame == 0 || self.max_pixels_per_frame > (1 << 26) {
+            return bad("max_pixels_per_frame");
+        }
+        if self.chunks == 0 || self.chunks as usize > MAX_CHUNKS {
+            return bad("chunks");
+        }
+        if self.rays_per_batch == 0 || self.rays_per_batch % self.chunks as u32 != 0 || self.rays_per_batch > (1 << 24) {
+            return bad("rays_per_batch");
+        }
+        if (self.samples_per_chunk as usize) < LANES || self.samples_per_chunk > (1 << 26) {
+            return bad("samples_per_chunk");
+        }
+        if self.steps == 0 {
+            return bad("steps");
+        }
+        if self.warmup_steps > self.steps {
+            return bad("warmup_steps");
+        }
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0 && self.learning_rate <= 1.0) {
+            return bad("learning_rate");
+        }
+        if !(self.final_lr_factor.is_finite() && (0.0..=1.0).contains(&self.final_lr_factor)) {
+            return bad("final_lr_factor");
+        }
+        if !(self.adam_beta1.is_finite() && (0.0..1.0).contains(&self.adam_beta1)) {
+            return bad("adam_beta1");
+        }
+        if !(self.adam_beta2.is_finite() && (0.0..1.0).contains(&self.adam_beta2)) {
+            return bad("adam_beta2");
+        }
+        if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
+            return bad("adam_eps");
+        }
+        if !(self.pose_lr_factor.is_finite() && (0.0..=0.01).contains(&self.pose_lr_factor)) {
+            return bad("pose_lr_factor");
+        }
+        Ok(())
+    }
+}
+
+/// Offsets of each layer's weights and biases in the one f32 vector of MLP parameters.
+/// Weights are stored input-major: `w[k * outputs + n]`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MlpLayout {
+    pub layers: [Layer; 5],
+    pub total: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Layer {
+    pub inputs: usize,
+    pub outputs: usize,
+    pub weights: usize,
+    pub biases: usize,
+}
+
+/// Layer indices in `MlpLayout::layers`.
+pub const DENSITY_HIDDEN: usize = 0;
+pub const DENSITY_OUT: usize = 1;
+pub const COLOUR_HIDDEN1: usize = 2;
+pub const COLOUR_HIDDEN2: usize = 3;
+pub const COLOUR_OUT: usize = 4;
+
+impl MlpLayout {
+    pub const fn new(c: &Config) -> MlpLayout {
+        let dims = [
+            (c.density_inputs(), c.density_hidden as usize),
+            (c.density_hidden as usize, c.density_outputs()),
+            (c.colour_inputs(), c.colour_hidden as usize),
+            (c.colour_hidden as usize, c.colour_hidden as usize),
+            (c.colour_hidden as usize, RGB),
+        ];
+        let empty = Layer { inputs: 0, outputs: 0, weights: 0, biases: 0 };
+        let mut layers = [empty; 5];
+        let mut at = 0;
+        let mut i = 0;
+        while i < 5 {
+            let (inputs, outputs) = dims[i];
+            layers[i] = Layer { inputs, outputs, weights: at, biases: at + inputs * outputs };
+            at += inputs * outputs + outputs;
+            i += 1;
+        }
+        MlpLayout { layers, total: at }
+    }
+}
+
+/// Bytes of each part of the arena for a config. Parts are laid out in this order, each
+/// starting on a `PART_ALIGN` boundary; `total` adds the slack to align an arbitrary buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MemoryPlan {
+    /// f16 texels of every plane.
+    pub planes: usize,
+    /// f32 master texels (MasterCopy only).
+    pub plane_master: usize,
+    /// Adam first and second moments of the texels.
+    pub plane_moments: usize,
+    /// Per-chunk f32 texel gradients and touched-texel bitmaps.
+    pub plane_grads: usize,
+    /// MLP weights, their Adam moments and per-chunk gradients.
+    pub mlp: usize,
+    /// Occupancy bitfield and running density per cell.
+    pub occupancy: usize,
+    /// Frame slots: pixels, masks, cameras, pose labels, per-frame parameters and moments.
+    pub frames: usize,
+    /// The ray batch: origins, directions, targets and frame indices.
+    pub ray_batch: usize,
+    /// Per-chunk sample buffers, per-ray results and MLP activation scratch.
+    pub samples: usize,
+    pub total: usize,
+}
+
+const fn align(n: usize) -> usize {
+    n.div_ceil(PART_ALIGN) * PART_ALIGN
+}
+
+/// Floats of activation (or gradient) per lane in the MLP scratch.
+pub const fn activation_floats(c: &Config) -> usize {
+    c.density_inputs()
+        + c.density_hidden as usize
+        + c.density_outputs()
+        + c.colour_inputs()
+        + 2 * c.colour_hidden as usize
+        + RGB
+}
+
+/// f32 values stored per sample: position (3), density, geometry features, colour (3),
+/// density gradient, colour gradient (3).
+pub const fn sample_floats(c: &Config) -> usize {
+    3 + 1 + c.geo_features as usize + RGB + 1 + RGB
+}
+
+/// f32 values stored per ray of the batch: origin, direction, target colour.
+pub const RAY_FLOATS: usize = 9;
+
+impl MemoryPlan {
+    pub const fn new(c: &Config) -> MemoryPlan {
+        let texels = c.texels();
+        let params = c.plane_params();
+        let chunks = c.chunks as usize;
+        let bitmap = texels.div_ceil(64) * 8;
+        let mlp = c.mlp().total;
+        let frames = c.max_frames as usize;
+        let frame_params = c.frame_params();
+        let rays = c.rays_per_batch as usize;
+        let chunk_rays = c.rays_per_chunk();
+        let samples = c.samples_per_chunk as usize;
+
+        let planes = align(params * 2);
+        let plane_master = match c.texel_update {
+            TexelUpdate::MasterCopy => align(params * 4),
+            TexelUpdate::StochasticRounding => 0,
+        };
+        let plane_moments = 2 * align(params * 4);
+        let plane_grads = chunks * (align(params * 4) + align(bitmap)) + align(bitmap);
+        let mlp_bytes = 3 * align(mlp * 4) + chunks * align(mlp * 4);
+        let occupancy = align(c.occupancy_cells().div_ceil(64) * 8) + align(c.occupancy_cells() * 4);
+        let frame_bytes = align(frames * c.max_pixels_per_frame as usize * 3)
+            + align(frames * c.max_pixels_per_frame as usize)
+            + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
+            + align(frames * 2)
+            + 3 * align(frames * frame_params * 4)
+            + chunks * align(frames * frame_params * 4);
+        let ray_batch = align(rays * RAY_FLOATS * 4) + align(rays * 4);
+        let per_chunk = align(samples * sample_floats(c) * 4)
+            + align(samples * 4)
+            + align((chunk_rays + 1) * 4)
+            + align(2 * LANES * activation_floats(c) * 4);
+        let sample_bytes = chunks * per_chunk;
+
+        let total = planes
+            + plane_master
+            + plane_moments
+            + plane_grads
+            + mlp_bytes
+            + occupancy
+            + frame_bytes
+            + ray_batch
+            + sample_bytes
+            + PART_ALIGN;
+        MemoryPlan {
+            planes,
+            plane_master,
+            plane_moments,
+            plane_grads,
+            mlp: mlp_bytes,
+            occupancy,
+            frames: frame_bytes,
+            ray_batch,
+            samples: sample_bytes,
+            total,
+        }
+    }
+}
+

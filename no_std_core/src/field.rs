@@ -1,0 +1,583 @@
+//! The radiance field's building blocks, each with its hand-written backward pass:
+//! multi-scale tri-plane lookup (f16 texels, bilinear, product across planes, concatenation
+//! across scales), the spherical-harmonics view encoding, MLP layers over `LANES` samples in
+//! structure-of-arrays layout, and the activations.
+//!
+//! Arithmetic is plain f32 multiply and add (no fused multiply-add, no fast-math), so every
+//! target computes the same bits.
+
+use crate::config::{Config, LANES, MAX_SCALES};
+use half::f16;
+
+/// The two world axes spanned by each of the three planes of a scale: xy, xz, yz.
+pub const PLANE_AXES: [(usize, usize); 3] = [(0, 1), (0, 2), (1, 2)];
+
+/// Where each scale's planes live in the texel array.
+#[derive(Clone, Copy, Debug)]
+pub struct PlaneGeometry {
+    pub scales: usize,
+    pub features: usize,
+    pub resolution: [usize; MAX_SCALES],
+    /// Texel index of the first texel of scale `s`'s xy plane; its xz and yz planes follow.
+    pub first_texel: [usize; MAX_SCALES],
+}
+
+impl PlaneGeometry {
+    pub fn new(c: &Config) -> Self {
+        let mut resolution = [0; MAX_SCALES];
+        let mut first_texel = [0; MAX_SCALES];
+        let mut at = 0;
+        for s in 0..c.scales as usize {
+            let r = c.resolutions[s] as usize;
+            resolution[s] = r;
+            first_texel[s] = at;
+            at += 3 * r * r;
+        }
+        PlaneGeometry { scales: c.scales as usize, features: c.features as usize, resolution, first_texel }
+    }
+}
+
+/// One bilinear footprint: the texel indices of the four corners and their weights, plus the
+/// fractional position (for the spatial gradient).
+#[derive(Clone, Copy, Debug)]
+struct Footprint {
+    texels: [usize; 4],
+    weights: [f32; 4],
+    frac: [f32; 2],
+}
+
+#[inline(always)]
+fn footprint(first: usize, res: usize, a: f32, b: f32) -> Footprint {
+    // align_corners: coordinate 0 is texel 0's centre and 1 is texel (res - 1)'s centre.
+    let scale = (res - 1) as f32;
+    let x = (a * scale).clamp(0.0, scale);
+    let y = (b * scale).clamp(0.0, scale);
+    // Saturating casts keep a NaN at texel 0 instead of panicking.
+    let x0 = (x as usize).min(res - 2);
+    let y0 = (y as usize).min(res - 2);
+    let fx = x - x0 as f32;
+    let fy = y - y0 as f32;
+    let t00 = first + y0 * res + x0;
+    Footprint {
+        texels: [t00, t00 + 1, t00 + res, t00 + res + 1],
+        weights: [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy],
+        frac: [fx, fy],
+    }
+}
+
+/// Up to 64 features of one texel, converted to f32.
+#[inline(always)]
+fn load_texel(planes: &[f16], texel: usize, features: usize, out: &mut [f32; 64]) {
+    use half::slice::HalfFloatSliceExt;
+    let start = texel * features;
+    if let Some(src) = planes.get(start..start + features) {
+        src.convert_to_f32_slice(&mut out[..features]);
+    }
+}
+
+/// Bilinear value of one plane at (a, b) in [0,1]^2 for all features, and the four corner
+/// texels (kept for the backward pass).
+#[inline(always)]
+fn plane_value(planes: &[f16], fp: &Footprint, features: usize, corners: &mut [[f32; 64]; 4], out: &mut [f32; 64]) {
+    for (corner, &texel) in corners.iter_mut().zip(&fp.texels) {
+        load_texel(planes, texel, features, corner);
+    }
+    let [w0, w1, w2, w3] = fp.weights;
+    for f in 0..features {
+        out[f] = w0 * corners[0][f] + w1 * corners[1][f] + w2 * corners[2][f] + w3 * corners[3][f];
+    }
+}
+
+/// Plane features at normalised position `u` in [0,1]^3: for each scale, the product of the
+/// three planes' bilinear values; scales concatenated. `out` holds `scales * features` values.
+pub fn planes_forward(planes: &[f16], geo: &PlaneGeometry, u: [f32; 3], out: &mut [f32]) {
+    let f = geo.features;
+    let mut corners = [[0.0f32; 64]; 4];
+    let mut value = [0.0f32; 64];
+    for s in 0..geo.scales {
+        let res = geo.resolution[s];
+        let feat = &mut out[s * f..(s + 1) * f];
+        feat.fill(1.0);
+        for (p, &(a, b)) in PLANE_AXES.iter().enumerate() {
+            let fp = footprint(geo.first_texel[s] + p * res * res, res, u[a], u[b]);
+            plane_value(planes, &fp, f, &mut corners, &mut value);
+            for (x, v) in feat.iter_mut().zip(&value[..f]) {
+                *x *= v;
+            }
+        }
+    }
+}
+
+/// Where the backward pass of the plane lookup writes: a dense f32 gradient per plane
+/// parameter and a bitmap of the texels touched (so the optimizer visits only those).
+pub struct PlaneGrads<'a> {
+    pub grads: &'a mut [f32],
+    pub touched: &'a mut [u64],
+}
+
+/// Backward of `planes_forward`: accumulates `d_out` (d loss / d features) into the texel
+/// gradients, and returns d loss / d u (the spatial gradient, used by pose correction) when
+/// `want_spatial` is set (otherwise zeros).
+pub fn planes_backward(
+    planes: &[f16],
+    geo: &PlaneGeometry,
+    u: [f32; 3],
+    d_out: &[f32],
+    sink: &mut PlaneGrads<'_>,
+    want_spatial: bool,
+) -> [f32; 3] {
+    let f = geo.features;
+    let mut corners = [[[0.0f32; 64]; 4]; 3];
+    let mut values = [[0.0f32; 64]; 3];
+    let mut spatial = [0.0f32; 3];
+    for s in 0..geo.scales {
+        let res = geo.resolution[s];
+        let d_feat = &d_out[s * f..(s + 1) * f];
+        let mut fps = [footprint(0, 2, 0.0, 0.0); 3];
+        for (p, &(a, b)) in PLANE_AXES.iter().enumerate() {
+            fps[p] = footprint(geo.first_texel[s] + p * res * res, res, u[a], u[b]);
+            plane_value(planes, &fps[p], f, &mut corners[p], &mut values[p]);
+        }
+        for p in 0..3 {
+            let (q, r) = match p {
+                0 => (1, 2),
+                1 => (0, 2),
+                _ => (0, 1),
+            };
+            // d loss / d (this plane's value) = upstream * the other two planes' values.
+            let mut d_value = [0.0f32; 64];
+            for i in 0..f {
+                d_value[i] = d_feat[i] * values[q][i] * values[r][i];
+            }
+            let fp = &fps[p];
+            for (&texel, &w) in fp.texels.iter().zip(&fp.weights) {
+                let start = texel * f;
+                if let Some(g) = sink.grads.get_mut(start..start + f) {
+                    for (gi, dv) in g.iter_mut().zip(&d_value[..f]) {
+                        *gi += w * dv;
+                    }
+                }
+                if let Some(word) = sink.touched.get_mut(texel / 64) {
+                    *word |= 1 << (texel % 64);
+                }
+            }
+            if want_spatial {
+                let [fx, fy] = fp.frac;
+                let c = &corners[p];
+                let (mut dx, mut dy) = (0.0f32, 0.0f32);
+                for i in 0..f {
+                    let ddx = (1.0 - fy) * (c[1][i] - c[0][i]) + fy * (c[3][i] - c[2][i]);
+                    let ddy = (1.0 - fx) * (c[2][i] - c[0][i]) + fx * (c[3][i] - c[1][i]);
+                    dx += d_value[i] * ddx;
+                    dy += d_value[i] * ddy;
+                }
+                // Inside the clamp the texel coordinate is u * (res - 1); outside it is flat.
+                let scale = (res - 1) as f32;
+                let (a, b) = PLANE_AXES[p];
+                if (0.0..=1.0).contains(&u[a]) {
+                    spatial[a] += dx * scale;
+                }
+                if (0.0..=1.0).contains(&u[b]) {
+                    spatial[b] += dy * scale;
+                }
+            }
+        }
+    }
+    spatial
+}
+
+const SH_C0: f32 = 0.282_094_8;
+const SH_C1: f32 = 0.488_602_5;
+const SH_C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
+const SH_C3: [f32; 7] = [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_34, -0.457_045_8, 1.445_305_7, -0.590_043_6];
+
+/// Real spherical harmonics of direction `d` (unit length expected), `degree²` values.
+pub fn sh_forward(degree: usize, d: [f32; 3], out: &mut [f32]) {
+    let [x, y, z] = d;
+    out[0] = SH_C0;
+    if degree > 1 {
+        out[1] = -SH_C1 * y;
+        out[2] = SH_C1 * z;
+        out[3] = -SH_C1 * x;
+    }
+    if degree > 2 {
+        let (xx, yy, zz) = (x * x, y * y, z * z);
+        out[4] = SH_C2[0] * x * y;
+        out[5] = SH_C2[1] * y * z;
+        out[6] = SH_C2[2] * (2.0 * zz - xx - yy);
+        out[7] = SH_C2[3] * x * z;
+        out[8] = SH_C2[4] * (xx - yy);
+        if degree > 3 {
+            out[9] = SH_C3[0] * y * (3.0 * xx - yy);
+            out[10] = SH_C3[1] * x * y * z;
+            out[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
+            out[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
+            out[13] = SH_C3[4] * x * (4.0 * zz - xx - yy);
+            out[14] = SH_C3[5] * z * (xx - yy);
+            out[15] = SH_C3[6] * x * (xx - 3.0 * yy);
+        }
+    }
+}
+
+/// Backward of `sh_forward`: d loss / d d, given d loss / d (each SH value).
+pub fn sh_backward(degree: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
+    let [x, y, z] = d;
+    let mut g = [0.0f32; 3];
+    if degree > 1 {
+        g[1] -= SH_C1 * d_out[1];
+        g[2] += SH_C1 * d_out[2];
+        g[0] -= SH_C1 * d_out[3];
+    }
+    if degree > 2 {
+        g[0] += SH_C2[0] * y * d_out[4];
+        g[1] += SH_C2[0] * x * d_out[4];
+        g[1] += SH_C2[1] * z * d_out[5];
+        g[2] += SH_C2[1] * y * d_out[5];
+        g[0] += SH_C2[2] * -2.0 * x * d_out[6];
+        g[1] += SH_C2[2] * -2.0 * y * d_out[6];
+        g[2] += SH_C2[2] * 4.0 * z * d_out[6];
+        g[0] += SH_C2[3] * z * d_out[7];
+        g[2] += SH_C2[3] * x * d_out[7];
+        g[0] += SH_C2[4] * 2.0 * x * d_out[8];
+        g[1] += SH_C2[4] * -2.0 * y * d_out[8];
+        if degree > 3 {
+            let (xx, yy, zz) = (x * x, y * y, z * z);
+            g[0] += SH_C3[0] * 6.0 * x * y * d_out[9];
+            g[1] += SH_C3[0] * (3.0 * xx - 3.0 * yy) * d_out[9];
+            g[0] += SH_C3[1] * y * z * d_out[10];
+            g[1] += SH_C3[1] * x * z * d_out[10];
+            g[2] += SH_C3[1] * x * y * d_out[10];
+            g[0] += SH_C3[2] * -2.0 * x * y * d_out[11];
+            g[1] += SH_C3[2] * (4.0 * zz - xx - 3.0 * yy) * d_out[11];
+            g[2] += SH_C3[2] * 8.0 * y * z * d_out[11];
+            g[0] += SH_C3[3] * -6.0 * x * z * d_out[12];
+            g[1] += SH_C3[3] * -6.0 * y * z * d_out[12];
+            g[2] += SH_C3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) * d_out[12];
+            g[0] += SH_C3[4] * (4.0 * zz - 3.0 * xx - yy) * d_out[13];
+            g[1] += SH_C3[4] * -2.0 * x * y * d_out[13];
+            g[2] += SH_C3[4] * 8.0 * x * z * d_out[13];
+            g[0] += SH_C3[5] * 2.0 * x * z * d_out[14];
+            g[1] += SH_C3[5] * -2.0 * y * z * d_out[14];
+            g[2] += SH_C3[5] * (xx - yy) * d_out[14];
+            g[0] += SH_C3[6] * (3.0 * xx - 3.0 * yy) * d_out[15];
+            g[1] += SH_C3[6] * -6.0 * x * y * d_out[15];
+        }
+    }
+    g
+}
+
+/// One lane-row: the `LANES` values of one feature across the samples of a mini-batch.
+pub type Row = [f32; LANES];
+
+/// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes. `x` has `inputs` rows and
+/// `y` has `outputs` rows.
+pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
+    let outputs = y.len();
+    for (n, yn) in y.iter_mut().enumerate() {
+        let mut acc = [b[n]; LANES];
+        for (k, xk) in x.iter().enumerate() {
+            let wk = w[k * outputs + n];
+            for l in 0..LANES {
+                acc[l] += wk * xk[l];
+            }
+        }
+        *yn = acc;
+    }
+}
+
+/// Backward of `layer_forward`: accumulates d w and d b from `dy`, and (if `dx` is given)
+/// writes d x. Lanes whose `dy` is zero contribute nothing, which is how partial
+/// mini-batches are masked.
+pub fn layer_backward(w: &[f32], x: &[Row], dy: &[Row], dx: Option<&mut [Row]>, dw: &mut [f32], db: &mut [f32]) {
+    let outputs = dy.len();
+    for (n, dyn_) in dy.iter().enumerate() {
+        db[n] += lane_sum(dyn_);
+    }
+    for (k, xk) in x.iter().enumerate() {
+        let dwk = &mut dw[k * outputs..(k + 1) * outputs];
+        for (n, dyn_) in dy.iter().enumerate() {
+            dwk[n] += lane_dot(xk, dyn_);
+        }
+    }
+    if let Some(dx) = dx {
+        for (k, dxk) in dx.iter_mut().enumerate() {
+            let wk = &w[k * outputs..(k + 1) * outputs];
+            let mut acc = [0.0f32; LANES];
+            for (n, dyn_) in dy.iter().enumerate() {
+                let wkn = wk[n];
+                for l in 0..LANES {
+                    acc[l] += wkn * dyn_[l];
+                }
+            }
+            *dxk = acc;
+        }
+    }
+}
+
+/// Sum of a row in a fixed order: eight interleaved partial sums (so the loop vectorises
+/// without reassociation), then a fixed tree.
+#[inline(always)]
+fn lane_sum(a: &Row) -> f32 {
+    let mut s = [0.0f32; 8];
+    for c in a.chunks_exact(8) {
+        for j in 0..8 {
+            s[j] += c[j];
+        }
+    }
+    ((s[0] + s[4]) + (s[1] + s[5])) + ((s[2] + s[6]) + (s[3] + s[7]))
+}
+
+#[inline(always)]
+fn lane_dot(a: &Row, b: &Row) -> f32 {
+    let mut s = [0.0f32; 8];
+    for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        for j in 0..8 {
+            s[j] += ca[j] * cb[j];
+        }
+    }
+    ((s[0] + s[4]) + (s[1] + s[5])) + ((s[2] + s[6]) + (s[3] + s[7]))
+}
+
+pub fn relu_forward(y: &mut [Row]) {
+    for row in y {
+        for v in row.iter_mut() {
+            *v = v.max(0.0);
+        }
+    }
+}
+
+/// Backward of ReLU given its output `y`.
+pub fn relu_backward(y: &[Row], dy: &mut [Row]) {
+    for (yr, dr) in y.iter().zip(dy) {
+        for l in 0..LANES {
+            if yr[l] <= 0.0 {
+                dr[l] = 0.0;
+            }
+        }
+    }
+}
+
+/// Raw densities above this saturate (exp(15) = 3.3e6): the forward value stays finite and
+/// the backward pass uses the clamped exponential as its gradient (instant-ngp's trunc_exp).
+pub const TRUNC_EXP_LIMIT: f32 = 15.0;
+
+#[inline]
+pub fn trunc_exp(x: f32) -> f32 {
+    libm::expf(x.min(TRUNC_EXP_LIMIT))
+}
+
+/// d trunc_exp / d x, clamped like the forward value.
+#[inline]
+pub fn trunc_exp_grad(x: f32) -> f32 {
+    libm::expf(x.min(TRUNC_EXP_LIMIT))
+}
+
+#[inline]
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + libm::expf(-x))
+}
+
+/// d sigmoid / d x from the sigmoid's output.
+#[inline]
+pub fn sigmoid_grad(y: f32) -> f32 {
+    y * (1.0 - y)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    fn random_planes(geo: &PlaneGeometry, texels: usize, seed: u64) -> [f16; 4096] {
+        let mut p = [f16::ZERO; 4096];
+        let mut rng = Rng::new(seed);
+        for v in p.iter_mut().take(texels * geo.features) {
+            *v = f16::from_f32(0.2 + 0.6 * rng.uniform());
+        }
+        p
+    }
+
+    fn small_geometry() -> (PlaneGeometry, usize) {
+        let mut c = Config::DEFAULT;
+        c.scales = 2;
+        c.resolutions = [4, 6, 0, 0];
+        c.features = 8;
+        (PlaneGeometry::new(&c), c.texels())
+    }
+
+    /// Relative agreement of an analytic and a central-difference derivative.
+    fn assert_close(analytic: f32, numeric: f32, tol: f32, what: &str) {
+        let scale = analytic.abs().max(numeric.abs()).max(1e-2);
+        assert!((analytic - numeric).abs() / scale < tol, "{what}: analytic {analytic} vs numeric {numeric}");
+    }
+
+    #[test]
+    fn plane_lookup_gradients_match_finite_differences() {
+        let (geo, texels) = small_geometry();
+        let planes = random_planes(&geo, texels, 1);
+        let n = 2 * geo.features;
+        let u = [0.37, 0.61, 0.18];
+        let mut d_out = [0.0f32; 16];
+        let mut rng = Rng::new(2);
+        for v in d_out.iter_mut().take(n) {
+            *v = rng.uniform() - 0.5;
+        }
+        let loss = |planes: &[f16], u: [f32; 3]| {
+            let mut out = [0.0f32; 16];
+            planes_forward(planes, &geo, u, &mut out[..n]);
+            (0..n).map(|i| (out[i] * d_out[i]) as f64).sum::<f64>()
+        };
+        let mut grads = [0.0f32; 4096];
+        let mut touched = [0u64; 8];
+        let spatial = planes_backward(
+            &planes,
+            &geo,
+            u,
+            &d_out[..n],
+            &mut PlaneGrads { grads: &mut grads, touched: &mut touched },
+            true,
+        );
+        // Texel gradients: perturb in f32 through a shadow copy (the lookup is linear in
+        // each texel, so the difference is exact up to f16 storage of the base value).
+        let mut checked = 0;
+        for t in 0..texels {
+            let is_touched = touched[t / 64] >> (t % 64) & 1 == 1;
+            for f in 0..geo.features {
+                let i = t * geo.features + f;
+                if !is_touched {
+                    assert_eq!(grads[i], 0.0);
+                    continue;
+                }
+                let h = 0.0625f32; // exact in f16 around values in [0.2, 0.8]
+                let mut plus = planes;
+                let mut minus = planes;
+                plus[i] = f16::from_f32(planes[i].to_f32() + h);
+                minus[i] = f16::from_f32(planes[i].to_f32() - h);
+                let numeric = ((loss(&plus, u) - loss(&minus, u)) / (2.0 * h as f64)) as f32;
+                assert_close(grads[i], numeric, 2e-3, "texel");
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 2 * 3 * 4 * geo.features);
+        for a in 0..3 {
+            let h = 1e-3f32;
+            let (mut up, mut um) = (u, u);
+            up[a] += h;
+            um[a] -= h;
+            let numeric = ((loss(&planes, up) - loss(&planes, um)) / (2.0 * h as f64)) as f32;
+            assert_close(spatial[a], numeric, 1e-2, "position");
+        }
+    }
+
+    #[test]
+    fn plane_lookup_outside_the_box_and_nan_stay_in_bounds() {
+        let (geo, texels) = small_geometry();
+        let planes = random_planes(&geo, texels, 3);
+        let mut out = [0.0f32; 16];
+        for u in [[-5.0, 2.0, 0.5], [f32::NAN, 0.5, f32::INFINITY], [1.0, 1.0, 1.0]] {
+            planes_forward(&planes, &geo, u, &mut out);
+            assert!(out.iter().all(|v| v.is_finite() || u.iter().any(|x| x.is_nan())));
+        }
+    }
+
+    #[test]
+    fn sh_gradients_match_finite_differences() {
+        let d = [0.3f32, -0.5, 0.8];
+        let mut d_out = [0.0f32; 16];
+        let mut rng = Rng::new(4);
+        for v in &mut d_out {
+            *v = rng.uniform() - 0.5;
+        }
+        for degree in 1..=4 {
+            let n = degree * degree;
+            let loss = |d: [f32; 3]| {
+                let mut out = [0.0f32; 16];
+                sh_forward(degree, d, &mut out);
+                (0..n).map(|i| (out[i] * d_out[i]) as f64).sum::<f64>()
+            };
+            let g = sh_backward(degree, d, &d_out[..n]);
+            for a in 0..3 {
+                let h = 1e-3f32;
+                let (mut p, mut m) = (d, d);
+                p[a] += h;
+                m[a] -= h;
+                let numeric = ((loss(p) - loss(m)) / (2.0 * h as f64)) as f32;
+                assert_close(g[a], numeric, 1e-2, "sh");
+            }
+        }
+    }
+
+    #[test]
+    fn sh_degree_two_is_orthonormal_on_axes() {
+        // Values on +z: only the constant and the z-aligned terms are non-zero.
+        let mut out = [0.0f32; 16];
+        sh_forward(4, [0.0, 0.0, 1.0], &mut out);
+        assert!((out[0] - SH_C0).abs() < 1e-7 && (out[2] - SH_C1).abs() < 1e-7);
+        assert_eq!(out[1], 0.0);
+        assert_eq!(out[3], 0.0);
+    }
+
+    #[test]
+    fn layer_gradients_match_finite_differences() {
+        const K: usize = 5;
+        const N: usize = 4;
+        let mut rng = Rng::new(5);
+        let mut w = [0.0f32; K * N];
+        let mut b = [0.0f32; N];
+        let mut x = [[0.0f32; LANES]; K];
+        let mut upstream = [[0.0f32; LANES]; N];
+        w.iter_mut().chain(b.iter_mut()).for_each(|v| *v = rng.uniform() - 0.5);
+        x.iter_mut().flatten().for_each(|v| *v = rng.uniform() - 0.5);
+        upstream.iter_mut().flatten().for_each(|v| *v = rng.uniform() - 0.5);
+        // Loss = sum over lanes of upstream * relu(layer(x)).
+        let loss = |w: &[f32], b: &[f32], x: &[Row]| {
+            let mut y = [[0.0f32; LANES]; N];
+            layer_forward(w, b, x, &mut y);
+            relu_forward(&mut y);
+            y.iter().zip(&upstream).flat_map(|(a, u)| a.iter().zip(u)).map(|(a, u)| (a * u) as f64).sum::<f64>()
+        };
+        let mut y = [[0.0f32; LANES]; N];
+        layer_forward(&w, &b, &x, &mut y);
+        relu_forward(&mut y);
+        let mut dy = upstream;
+        relu_backward(&y, &mut dy);
+        let (mut dw, mut db, mut dx) = ([0.0f32; K * N], [0.0f32; N], [[0.0f32; LANES]; K]);
+        layer_backward(&w, &x, &dy, Some(&mut dx), &mut dw, &mut db);
+        let h = 1e-3f32;
+        for i in 0..K * N {
+            let (mut p, mut m) = (w, w);
+            p[i] += h;
+            m[i] -= h;
+            let numeric = ((loss(&p, &b, &x) - loss(&m, &b, &x)) / (2.0 * h as f64)) as f32;
+            assert_close(dw[i], numeric, 1e-2, "weight");
+        }
+        for i in 0..N {
+            let (mut p, mut m) = (b, b);
+            p[i] += h;
+            m[i] -= h;
+            let numeric = ((loss(&w, &p, &x) - loss(&w, &m, &x)) / (2.0 * h as f64)) as f32;
+            assert_close(db[i], numeric, 1e-2, "bias");
+        }
+        for (k, l) in [(0, 0), (2, 17), (4, 63)] {
+            let (mut p, mut m) = (x, x);
+            p[k][l] += h;
+            m[k][l] -= h;
+            let numeric = ((loss(&w, &b, &p) - loss(&w, &b, &m)) / (2.0 * h as f64)) as f32;
+            assert_close(dx[k][l], numeric, 1e-2, "input");
+        }
+    }
+
+    #[test]
+    fn activations_match_finite_differences() {
+        let h = 1e-3f32;
+        for x in [-3.0f32, -0.2, 0.0, 0.7, 4.0] {
+            let numeric = (sigmoid(x + h) - sigmoid(x - h)) / (2.0 * h);
+            assert_close(sigmoid_grad(sigmoid(x)), numeric, 1e-2, "sigmoid");
+            let numeric = (trunc_exp(x + h) - trunc_exp(x - h)) / (2.0 * h);
+            assert_close(trunc_exp_grad(x), numeric, 1e-2, "trunc_exp");
+        }
+        // Saturated: finite value and finite, clamped gradient.
+        assert!(trunc_exp(1e30).is_finite() && trunc_exp_grad(f32::INFINITY).is_finite());
+        assert_eq!(trunc_exp(100.0), trunc_exp(TRUNC_EXP_LIMIT));
+    }
+}

@@ -1,0 +1,152 @@
+//! Frame slots: a fixed number of them, each holding a camera, a pose label, RGB8 pixels and
+//! an optional foreground mask. The learnable per-frame parameters (appearance embedding and
+//! pose correction) live beside them in the trainer and are reset with the slot.
+
+use crate::{Camera, Error, Pose};
+use bytemuck::{Pod, Zeroable};
+use glam::{Mat3, Vec3};
+
+/// Metadata of one slot, stored in the arena.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct FrameMeta {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    /// Camera-to-world rotation, column-major.
+    pub rotation: [f32; 9],
+    pub center: [f32; 3],
+    pub has_mask: u32,
+    pub occupied: u32,
+}
+
+impl FrameMeta {
+    pub fn camera(&self) -> Camera {
+        Camera { width: self.width as u16, height: self.height as u16, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy }
+    }
+    pub fn pose(&self) -> Pose {
+        Pose { rotation: Mat3::from_cols_array(&self.rotation), center: Vec3::from_array(self.center) }
+    }
+}
+
+/// The frame slots, borrowed from the arena.
+pub struct FrameStore<'a> {
+    pub(crate) meta: &'a mut [FrameMeta],
+    pub(crate) pixels: &'a mut [u8],
+    pub(crate) masks: &'a mut [u8],
+    /// Indices of the occupied slots, in slot order; the first `len` entries are valid.
+    pub(crate) occupied: &'a mut [u16],
+    pub(crate) len: usize,
+    pub(crate) max_pixels: usize,
+}
+
+/// Largest deviation of R^T R from the identity accepted for a pose label.
+const ORTHONORMAL_TOLERANCE: f32 = 1e-3;
+
+impl<'a> FrameStore<'a> {
+    pub fn capacity(&self) -> usize {
+        self.meta.len()
+    }
+
+    /// Occupied slots.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Slot index of the `i`-th occupied slot.
+    pub fn occupied_slot(&self, i: usize) -> Option<usize> {
+        self.occupied.get(..self.len)?.get(i).map(|&s| s as usize)
+    }
+
+    pub fn meta(&self, slot: usize) -> Option<&FrameMeta> {
+        self.meta.get(slot).filter(|m| m.occupied != 0)
+    }
+
+    /// RGB8 pixels of an occupied slot.
+    pub fn pixels(&self, slot: usize) -> Option<&[u8]> {
+        let m = self.meta(slot)?;
+        let n = m.width as usize * m.height as usize;
+        self.pixels.get(slot * self.max_pixels * 3..)?.get(..n * 3)
+    }
+
+    /// Foreground mask of an occupied slot, if it has one.
+    pub fn mask(&self, slot: usize) -> Option<&[u8]> {
+        let m = self.meta(slot).filter(|m| m.has_mask != 0)?;
+        let n = m.width as usize * m.height as usize;
+        self.masks.get(slot * self.max_pixels..)?.get(..n)
+    }
+
+    /// Put a frame into `slot`, replacing what was there. The input is checked first; on error
+    /// the slot is unchanged.
+    pub fn set(&mut self, slot: usize, camera: Camera, pose: Pose, pixels: &[u8], mask: Option<&[u8]>) -> Result<(), Error> {
+        if slot >= self.capacity() {
+            return Err(Error::InvalidFrame { field: "slot" });
+        }
+        if !camera.is_valid() {
+            return Err(Error::InvalidFrame { field: "camera" });
+        }
+        let n = camera.pixel_count();
+        if n > self.max_pixels {
+            return Err(Error::FrameTooLarge { pixels: n, capacity: self.max_pixels });
+        }
+        if pixels.len() != n * 3 {
+            return Err(Error::InvalidFrame { field: "pixels" });
+        }
+        if mask.is_some_and(|m| m.len() != n) {
+            return Err(Error::InvalidFrame { field: "mask" });
+        }
+        if !pose.is_finite() {
+            return Err(Error::InvalidFrame { field: "pose" });
+        }
+        let rtr = pose.rotation.transpose() * pose.rotation;
+        let off = (rtr - Mat3::IDENTITY).to_cols_array().iter().fold(0.0f32, |a, v| a.max(v.abs()));
+        if !(off < ORTHONORMAL_TOLERANCE) || pose.rotation.determinant() < 0.0 {
+            return Err(Error::InvalidFrame { field: "pose.rotation" });
+        }
+        let base = slot * self.max_pixels;
+        self.pixels[base * 3..base * 3 + n * 3].copy_from_slice(pixels);
+        if let Some(mask) = mask {
+            self.masks[base..base + n].copy_from_slice(mask);
+        }
+        self.meta[slot] = FrameMeta {
+            width: camera.width as u32,
+            height: camera.height as u32,
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            rotation: pose.rotation.to_cols_array(),
+            center: pose.center.to_array(),
+            has_mask: mask.is_some() as u32,
+            occupied: 1,
+        };
+        self.rebuild_occupied();
+        Ok(())
+    }
+
+    /// Empty a slot (no-op if it is already empty or out of range).
+    pub fn clear(&mut self, slot: usize) {
+        if let Some(m) = self.meta.get_mut(slot) {
+            *m = FrameMeta::default();
+            self.rebuild_occupied();
+        }
+    }
+
+    pub(crate) fn rebuild_occupied(&mut self) {
+        let mut len = 0;
+        for (slot, m) in self.meta.iter().enumerate() {
+            if m.occupied != 0 {
+                self.occupied[len] = slot as u16;
+                len += 1;
+            }
+        }
+        self.len = len;
+    }
+}

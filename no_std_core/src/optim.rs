@@ -1,0 +1,145 @@
+//! Adam with a warm-up + cosine learning-rate schedule; plane texels are updated sparsely
+//! (only those a batch touched) and stored in f16 either from an f32 master copy or by
+//! seeded stochastic rounding.
+
+use crate::config::Config;
+use crate::rng;
+use half::f16;
+
+/// Learning rate at `step` (0-based): linear warm-up, then cosine decay to
+/// `learning_rate * final_lr_factor` at the last step.
+pub fn learning_rate(c: &Config, step: u32) -> f32 {
+    let base = c.learning_rate;
+    if step < c.warmup_steps {
+        return base * (step + 1) as f32 / c.warmup_steps as f32;
+    }
+    let span = (c.steps - c.warmup_steps).max(1) as f32;
+    let progress = ((step - c.warmup_steps) as f32 / span).min(1.0);
+    let cosine = 0.5 * (1.0 + libm::cosf(core::f32::consts::PI * progress));
+    base * (c.final_lr_factor + (1.0 - c.final_lr_factor) * cosine)
+}
+
+/// The per-step constants of Adam with bias correction folded into the step size.
+#[derive(Clone, Copy, Debug)]
+pub struct AdamStep {
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    /// lr * sqrt(1 - beta2^t) / (1 - beta1^t)
+    pub step_size: f32,
+    /// eps * sqrt(1 - beta2^t), so the update equals the textbook one.
+    pub eps_hat: f32,
+}
+
+impl AdamStep {
+    /// `t` counts applied updates, starting at 1.
+    pub fn new(c: &Config, lr: f32, t: u32) -> Self {
+        let b1t = libm::powf(c.adam_beta1, t as f32);
+        let b2t = libm::powf(c.adam_beta2, t as f32);
+        let root = libm::sqrtf(1.0 - b2t);
+        AdamStep {
+            beta1: c.adam_beta1,
+            beta2: c.adam_beta2,
+            eps: c.adam_eps,
+            step_size: lr * root / (1.0 - b1t),
+            eps_hat: c.adam_eps * root,
+        }
+    }
+
+    /// Update moments with gradient `g` and return the parameter change.
+    #[inline(always)]
+    pub fn delta(&self, g: f32, m: &mut f32, v: &mut f32) -> f32 {
+        *m = self.beta1 * *m + (1.0 - self.beta1) * g;
+        *v = self.beta2 * *v + (1.0 - self.beta2) * g * g;
+        -self.step_size * *m / (libm::sqrtf(*v) + self.eps_hat)
+    }
+
+    /// Dense update of `params` from `grads`.
+    pub fn apply(&self, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+        for (((p, g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
+            *p += self.delta(*g, m, v);
+        }
+    }
+}
+
+/// Round `x` to one of the two f16 values around it, choosing the upper one with probability
+/// equal to its fractional distance, so the expected result is `x` (within f16 range).
+pub fn stochastic_round(x: f32, bits: u64) -> f16 {
+    let nearest = f16::from_f32(x);
+    let y = nearest.to_f32();
+    if y == x || !x.is_finite() || nearest.is_infinite() {
+        return nearest;
+    }
+    // The f16 neighbour on the other side of x: one unit in the last place toward x.
+    let raw = nearest.to_bits();
+    let toward_x = if (y < x) == (raw & 0x8000 == 0) { raw.wrapping_add(1) } else { raw.wrapping_sub(1) };
+    // Crossing zero from +0 goes to the smallest negative subnormal.
+    let other = if raw & 0x7fff == 0 { f16::from_bits(if x > 0.0 { 1 } else { 0x8001 }) } else { f16::from_bits(toward_x) };
+    let z = other.to_f32();
+    let (lo, hi, lo_h, hi_h) = if y < z { (y, z, nearest, other) } else { (z, y, other, nearest) };
+    let p_hi = (x - lo) / (hi - lo);
+    if rng::unit_f32(bits) < p_hi { hi_h } else { lo_h }
+}
+
+/// Writes one texel feature after an update, following the configured policy.
+#[inline(always)]
+pub fn store_texel(texel: &mut f16, master: Option<&mut f32>, delta: f32, seed: u64, step: u32, index: usize) {
+    match master {
+        Some(m) => {
+            *m += delta;
+            *texel = f16::from_f32(*m);
+        }
+        None => {
+            let bits = rng::hash(seed, rng::stream::ROUNDING, step as u64, index as u64);
+            *texel = stochastic_round(texel.to_f32() + delta, bits);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schedule_warms_up_then_decays_to_the_floor() {
+        let mut c = Config::DEFAULT;
+        c.steps = 1000;
+        c.warmup_steps = 100;
+        assert!(learning_rate(&c, 0) < learning_rate(&c, 50));
+        assert!((learning_rate(&c, 99) - c.learning_rate).abs() < 1e-7);
+        assert!(learning_rate(&c, 500) < c.learning_rate);
+        assert!((learning_rate(&c, 1000) - c.learning_rate * c.final_lr_factor).abs() < 1e-7);
+        assert!((100..1000).all(|s| learning_rate(&c, s + 1) <= learning_rate(&c, s)));
+    }
+
+    #[test]
+    fn adam_first_step_moves_by_the_learning_rate() {
+        let c = Config::DEFAULT;
+        let adam = AdamStep::new(&c, 0.01, 1);
+        let (mut m, mut v) = (0.0, 0.0);
+        let d = adam.delta(3.0, &mut m, &mut v);
+        assert!((d + 0.01).abs() < 1e-6, "{d}");
+    }
+
+    #[test]
+    fn stochastic_rounding_is_unbiased_where_nearest_rounding_vanishes() {
+        // 1e-4 is far below half an f16 ulp at 0.3 (about 1.2e-4 ulp), so round-to-nearest
+        // would never move; stochastic rounding moves on average by the exact amount.
+        let start = 0.3f32;
+        let mut sum = 0.0f64;
+        let n = 20_000;
+        for i in 0..n {
+            let r = stochastic_round(start + 1e-5, rng::hash(1, 2, 3, i));
+            sum += r.to_f32() as f64;
+        }
+        let mean = sum / n as f64;
+        let nearest_start = f16::from_f32(start).to_f32() as f64;
+        assert_eq!(f16::from_f32(start + 1e-5).to_f32() as f64, nearest_start);
+        assert!((mean - (start as f64 + 1e-5)).abs() < 3e-6, "mean {mean}");
+        // Exact values, zero crossings and huge values stay sane.
+        assert_eq!(stochastic_round(0.5, 7).to_f32(), 0.5);
+        assert!(stochastic_round(-1e-9, 5).to_f32().abs() < 1e-7);
+        assert!(stochastic_round(1e9, 5).is_infinite());
+        assert!(stochastic_round(f32::NAN, 5).is_nan());
+    }
+}
