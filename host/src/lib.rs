@@ -3,5 +3,8 @@
 pub mod dataset;
 pub mod error;
 pub mod io;
+pub mod checkpoint;
+pub mod metrics;
+pub mod nerf_formats;
 
 pub use error::{HostError, Result};

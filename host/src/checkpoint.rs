@@ -1,0 +1,296 @@
+//! Versioned checkpoint container.
+//!
+//! A checkpoint is opaque to this module: the trainer puts its own encoded configuration in
+//! `config` and its parameter, optimizer and RNG state in named `sections`. This module only
+//! guarantees that what was saved is what is loaded, and says clearly why a file is refused.
+//!
+//! File layout (all integers little-endian):
+//!
+//! | bytes | content |
+//! | --- | --- |
+//! | 8 | magic `ORBNERF\x01`, which tells a checkpoint from any other file |
+//! | 4 | format version (`u32`), bumped whenever the payload encoding changes |
+//! | 8 | payload length in bytes (`u64`) |
+//! | 4 | CRC-32 (IEEE) of the payload (`u32`) |
+//! | n | payload: the [`Checkpoint`] encoded with postcard |
+//!
+//! The length and checksum come before the payload so that a truncated or corrupted file is
+//! caught before postcard sees it (postcard would otherwise report a confusing decode error, or
+//! worse, decode a flipped bit into a different but well-formed value).
+
+use crate::error::{HostError, Result};
+use crate::io::write_atomic;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// First bytes of every checkpoint file.
+pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
+/// The payload encoding this build writes and the only one it reads.
+pub const FORMAT_VERSION: u32 = 1;
+/// Magic + version + payload length + CRC-32.
+const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// What wrote the checkpoint (e.g. the trainer's name), so a reader can refuse a foreign one.
+    pub kind: String,
+    /// The writer's own encoded configuration.
+    pub config: Vec<u8>,
+    /// Named blobs (parameters, optimizer moments, RNG state...). Names are unique.
+    pub sections: Vec<Section>,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Section {
+    pub name: String,
+    pub bytes: Vec<u8>,
+}
+
+impl Checkpoint {
+    /// The bytes of the section called `name`, or an error listing the sections there are.
+    pub fn section(&self, name: &str) -> Result<&[u8]> {
+        match self.sections.iter().find(|s| s.name == name) {
+            Some(section) => Ok(&section.bytes),
+            None => {
+                let names: Vec<&str> = self.sections.iter().map(|s| s.name.as_str()).collect();
+                Err(HostError::invalid(
+                    format!("checkpoint of kind `{}`", self.kind),
+                    format!("no section named `{name}` (it has: {})", names.join(", ")),
+                ))
+            }
+        }
+    }
+
+    fn duplicate_section_name(&self) -> Option<&str> {
+        self.sections.iter().enumerate().find_map(|(i, s)| {
+            self.sections[..i]
+                .iter()
+                .any(|earlier| earlier.name == s.name)
+                .then_some(s.name.as_str())
+        })
+    }
+}
+
+/// Encode `checkpoint` and write it to `path` atomically (a crash never leaves half a file).
+/// Refuses duplicate section names, which would make [`Checkpoint::section`] ambiguous.
+pub fn save(path: &Path, checkpoint: &Checkpoint) -> Result<()> {
+    if let Some(name) = checkpoint.duplicate_section_name() {
+        return Err(HostError::invalid(
+            path,
+            format!("two sections are named `{name}`"),
+        ));
+    }
+    let payload = postcard::to_stdvec(checkpoint)
+        .map_err(|e| HostError::invalid(path, format!("cannot encode the checkpoint: {e}")))?;
+    let mut bytes = Vec::with_capacity(HEADER_LEN + payload.len());
+    bytes.extend_from_slice(&MAGIC);
+    bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+    bytes.extend_from_slice(&payload);
+    write_atomic(path, &bytes)
+}
+
+/// Read and verify the checkpoint at `path`.
+pub fn load(path: &Path) -> Result<Checkpoint> {
+    let bytes = std::fs::read(path).map_err(|e| HostError::io(path, e))?;
+    decode(path, &bytes)
+}
+
+fn decode(path: &Path, bytes: &[u8]) -> Result<Checkpoint> {
+    let refuse = |reason: String| HostError::invalid(PathBuf::from(path), reason);
+    // A file shorter than the magic that starts like one is a cut-off checkpoint, not a
+    // foreign file.
+    let magic_len = MAGIC.len().min(bytes.len());
+    if bytes[..magic_len] != MAGIC[..magic_len] {
+        return Err(refuse(
+            "not an orbit-nerf checkpoint (wrong magic bytes)".into(),
+        ));
+    }
+    if bytes.len() < HEADER_LEN {
+        return Err(refuse(format!(
+            "truncated: {} bytes, shorter than the {HEADER_LEN}-byte header",
+            bytes.len()
+        )));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4-byte slice"));
+    if version != FORMAT_VERSION {
+        return Err(refuse(format!(
+            "written by checkpoint format version {version}, this build reads version {FORMAT_VERSION}"
+        )));
+    }
+    let declared_len = u64::from_le_bytes(bytes[12..20].try_into().expect("8-byte slice"));
+    let expected_crc = u32::from_le_bytes(bytes[20..24].try_into().expect("4-byte slice"));
+    let payload = &bytes[HEADER_LEN..];
+    if (payload.len() as u64) < declared_len {
+        return Err(refuse(format!(
+            "truncated: the header announces {declared_len} payload bytes, the file holds {}",
+            payload.len()
+        )));
+    }
+    if payload.len() as u64 > declared_len {
+        return Err(refuse(format!(
+            "{} unexpected bytes after the {declared_len}-byte payload",
+            payload.len() as u64 - declared_len
+        )));
+    }
+    let actual_crc = crc32fast::hash(payload);
+    if actual_crc != expected_crc {
+        return Err(refuse(format!(
+            "checksum mismatch (stored {expected_crc:08x}, computed {actual_crc:08x}): the file is corrupt"
+        )));
+    }
+    let (checkpoint, rest): (Checkpoint, &[u8]) = postcard::take_from_bytes(payload)
+        .map_err(|e| refuse(format!("malformed payload: {e}")))?;
+    if !rest.is_empty() {
+        return Err(refuse(format!(
+            "malformed payload: {} bytes left after decoding",
+            rest.len()
+        )));
+    }
+    if let Some(name) = checkpoint.duplicate_section_name() {
+        return Err(refuse(format!(
+            "malformed payload: two sections are named `{name}`"
+        )));
+    }
+    Ok(checkpoint)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Checkpoint {
+        Checkpoint {
+            kind: "kplanes-trainer".into(),
+            config: vec![1, 2, 3, 250],
+            sections: vec![
+                Section {
+                    name: "params".into(),
+                    bytes: (0..=255).collect(),
+                },
+                Section {
+                    name: "adam".into(),
+                    bytes: vec![],
+                },
+                Section {
+                    name: "rng".into(),
+                    bytes: 0xDEAD_BEEF_u64.to_le_bytes().to_vec(),
+                },
+            ],
+        }
+    }
+
+    fn saved(dir: &tempfile::TempDir) -> (PathBuf, Vec<u8>) {
+        let path = dir.path().join("ck.bin");
+        save(&path, &sample()).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        (path, bytes)
+    }
+
+    fn load_err(path: &Path, bytes: &[u8]) -> String {
+        std::fs::write(path, bytes).unwrap();
+        let message = load(path).unwrap_err().to_string();
+        assert!(message.contains(&path.display().to_string()), "{message}");
+        message
+    }
+
+    #[test]
+    fn round_trips_and_finds_sections() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, bytes) = saved(&dir);
+        assert_eq!(&bytes[..8], &MAGIC);
+        let loaded = load(&path).unwrap();
+        assert_eq!(loaded, sample());
+        assert_eq!(
+            loaded.section("rng").unwrap(),
+            0xDEAD_BEEF_u64.to_le_bytes()
+        );
+        assert_eq!(loaded.section("adam").unwrap(), &[] as &[u8]);
+        let missing = loaded.section("moments").unwrap_err().to_string();
+        assert!(missing.contains("no section named `moments`"), "{missing}");
+        assert!(missing.contains("params, adam, rng"), "{missing}");
+    }
+
+    #[test]
+    fn missing_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("absent.ckpt");
+        let message = load(&path).unwrap_err().to_string();
+        assert!(message.contains("absent.ckpt"), "{message}");
+    }
+
+    #[test]
+    fn wrong_magic() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, mut bytes) = saved(&dir);
+        bytes[0] = b'P';
+        assert!(load_err(&path, &bytes).contains("not an orbit-nerf checkpoint"));
+        assert!(load_err(&path, b"{\"json\": true}").contains("not an orbit-nerf checkpoint"));
+    }
+
+    #[test]
+    fn wrong_version() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, mut bytes) = saved(&dir);
+        bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+        let message = load_err(&path, &bytes);
+        assert!(
+            message.contains("format version 7, this build reads version 1"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn truncated_anywhere() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, bytes) = saved(&dir);
+        for cut in [0, 3, 8, 23, 24, bytes.len() / 2, bytes.len() - 1] {
+            let message = load_err(&path, &bytes[..cut]);
+            assert!(message.contains("truncated"), "cut at {cut}: {message}");
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(load_err(&path, &longer).contains("unexpected bytes after"));
+    }
+
+    #[test]
+    fn checksum_mismatch() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, mut bytes) = saved(&dir);
+        let last = bytes.len() - 1;
+        bytes[last] ^= 0x10;
+        assert!(load_err(&path, &bytes).contains("checksum mismatch"));
+    }
+
+    #[test]
+    fn malformed_payload_with_a_valid_checksum() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bad.ckpt");
+        // A string length far beyond the payload: well-framed, but not a Checkpoint.
+        let payload = [0xFF, 0xFF, 0xFF, 0x0F, b'x'];
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+        bytes.extend_from_slice(&payload);
+        assert!(load_err(&path, &bytes).contains("malformed payload"));
+    }
+
+    #[test]
+    fn duplicate_section_names_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dup.ckpt");
+        let mut checkpoint = sample();
+        checkpoint.sections.push(Section {
+            name: "params".into(),
+            bytes: vec![9],
+        });
+        let message = save(&path, &checkpoint).unwrap_err().to_string();
+        assert!(
+            message.contains("two sections are named `params`"),
+            "{message}"
+        );
+        assert!(!path.exists());
+    }
+}
