@@ -3,6 +3,8 @@
 pub mod dataset;
 pub mod error;
 pub mod io;
+pub mod sim;
+pub mod speedplus;
 pub mod checkpoint;
 pub mod metrics;
 pub mod nerf_formats;

@@ -1,0 +1,423 @@
+//! Scene simulator: renders a target spacecraft under orbital illumination and writes a dataset
+//! in the SPEED+ format (see `docs/simulator.md`).
+//!
+//! A scene (TOML, [`Scene`]) names the target, the camera, the pose distribution, the sun path
+//! and the effects to compute. Only the listed effects run; [`SimulationReport::timing_table`]
+//! shows the time each one took, summed over frames. Frames are rendered in parallel (rayon),
+//! each a pure function of the scene, its seed and its index, so the output is identical for a
+//! seed whatever the thread count.
+//!
+//! Output folder: `images/imgNNNNNN.png`, `masks/imgNNNNNN.png`, `labels.json` (the labels to
+//! train on, noisy if the scene asks), `truth.json` (exact poses, sun directions, exposures),
+//! `camera.json` and `scene.toml` (the scene as run).
+
+mod render;
+pub mod scene;
+mod target;
+mod trajectory;
+
+pub use scene::{Effects, Scene, SceneSpec, preset_names};
+pub use target::{Target, read_landmarks};
+
+use crate::dataset::Dataset;
+use crate::error::{HostError, Result};
+use crate::io::write_png;
+use crate::speedplus::{Label, SpeedCamera, Truth, TruthFrame, write_labels};
+use rayon::prelude::*;
+use render::Renderer;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The timed parts of the simulation: the always-on pipeline and one stage per effect.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    Geometry,
+    Shadows,
+    Sun,
+    Specular,
+    Albedo,
+    Resolve,
+    Grayscale,
+    Exposure,
+    Flare,
+    Noise,
+    Encode,
+    LabelNoise,
+    Write,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 13] = [
+        Stage::Geometry,
+        Stage::Shadows,
+        Stage::Sun,
+        Stage::Specular,
+        Stage::Albedo,
+        Stage::Resolve,
+        Stage::Grayscale,
+        Stage::Exposure,
+        Stage::Flare,
+        Stage::Noise,
+        Stage::Encode,
+        Stage::LabelNoise,
+        Stage::Write,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Geometry => "primary rays",
+            Stage::Shadows => "shadow rays",
+            Stage::Sun => "direct sun",
+            Stage::Specular => "specular",
+            Stage::Albedo => "earth albedo",
+            Stage::Resolve => "pixel resolve",
+            Stage::Grayscale => "grayscale",
+            Stage::Exposure => "exposure",
+            Stage::Flare => "flare/bloom",
+            Stage::Noise => "sensor noise",
+            Stage::Encode => "gamma + 8 bit",
+            Stage::LabelNoise => "label noise",
+            Stage::Write => "PNG write",
+        }
+    }
+
+    /// The scene effect (`[effects.NAME]`) that turns this stage on; `None` for stages that
+    /// always run.
+    pub fn effect(self) -> Option<&'static str> {
+        match self {
+            Stage::Shadows => Some("shadows"),
+            Stage::Sun => Some("sun"),
+            Stage::Specular => Some("specular"),
+            Stage::Albedo => Some("albedo"),
+            Stage::Grayscale => Some("grayscale"),
+            Stage::Exposure => Some("exposure"),
+            Stage::Flare => Some("flare"),
+            Stage::Noise => Some("noise"),
+            Stage::LabelNoise => Some("label_noise"),
+            Stage::Geometry | Stage::Resolve | Stage::Encode | Stage::Write => None,
+        }
+    }
+
+    /// Whether a scene with these effects runs this stage.
+    pub fn runs_with(self, effects: &Effects) -> bool {
+        match self {
+            Stage::Shadows => effects.shadows.is_some(),
+            Stage::Sun => effects.sun.is_some(),
+            Stage::Specular => effects.specular.is_some(),
+            Stage::Albedo => effects.albedo.is_some(),
+            Stage::Grayscale => effects.grayscale.is_some(),
+            Stage::Exposure => effects.exposure.is_some(),
+            Stage::Flare => effects.flare.is_some(),
+            Stage::Noise => effects.noise.is_some(),
+            Stage::LabelNoise => effects.label_noise.is_some(),
+            Stage::Geometry | Stage::Resolve | Stage::Encode | Stage::Write => true,
+        }
+    }
+}
+
+/// Time spent in each stage (summed over the frames and threads that ran it).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StageTimes([Duration; Stage::ALL.len()]);
+
+impl StageTimes {
+    /// Run `work`, adding its duration to `stage`.
+    pub fn time<T>(&mut self, stage: Stage, work: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let result = work();
+        self.0[stage as usize] += start.elapsed();
+        result
+    }
+
+    pub fn get(&self, stage: Stage) -> Duration {
+        self.0[stage as usize]
+    }
+
+    fn add(mut self, other: &StageTimes) -> StageTimes {
+        for (total, time) in self.0.iter_mut().zip(&other.0) {
+            *total += *time;
+        }
+        self
+    }
+}
+
+/// What a simulation did and how long each part took.
+#[derive(Clone, Debug)]
+pub struct SimulationReport {
+    pub frames: u32,
+    pub size: u16,
+    pub triangles: usize,
+    pub effects: Effects,
+    pub times: StageTimes,
+    pub wall_time: Duration,
+    pub out: PathBuf,
+    /// The labels written to `labels.json` and the contents of `truth.json`.
+    pub labels: Vec<Label>,
+    pub truth: Truth,
+}
+
+impl SimulationReport {
+    /// One line per stage: the effect it belongs to, whether it ran, total and per-frame time.
+    pub fn timing_table(&self) -> String {
+        let mut table = String::new();
+        let _ = writeln!(
+            table,
+            "{:<14} {:<12} {:<4} {:>10} {:>10}",
+            "stage", "effect", "on", "total ms", "ms/frame"
+        );
+        for stage in Stage::ALL {
+            let total = self.times.get(stage).as_secs_f64() * 1e3;
+            let _ = writeln!(
+                table,
+                "{:<14} {:<12} {:<4} {:>10.1} {:>10.3}",
+                stage.name(),
+                stage.effect().unwrap_or("(always)"),
+                if stage.runs_with(&self.effects) {
+                    "yes"
+                } else {
+                    "no"
+                },
+                total,
+                total / self.frames.max(1) as f64,
+            );
+        }
+        let cpu: Duration = Stage::ALL.iter().map(|&s| self.times.get(s)).sum();
+        let _ = writeln!(
+            table,
+            "{} frames of {}x{} px, {} triangles: {:.2} s wall, {:.2} s summed over threads",
+            self.frames,
+            self.size,
+            self.size,
+            self.triangles,
+            self.wall_time.as_secs_f64(),
+            cpu.as_secs_f64()
+        );
+        table
+    }
+}
+
+/// The SPEED+ camera scaled to a `size` x `size` output: the focal length scales with the
+/// width (the SPEED+ horizontal field of view is kept) and the principal point keeps its offset
+/// from the image centre. Distortion coefficients (on normalised coordinates) carry over when
+/// the scene renders with distortion.
+pub fn output_camera(sensor: &SpeedCamera, size: u16, distortion: bool) -> SpeedCamera {
+    let scale = size as f64 / sensor.width as f64;
+    let half = size as f64 / 2.0;
+    let k = &sensor.camera_matrix;
+    let (cx, cy) = (
+        half + (k[0][2] - sensor.width as f64 / 2.0) * scale,
+        half + (k[1][2] - sensor.height as f64 / 2.0) * scale,
+    );
+    SpeedCamera {
+        width: size as u32,
+        height: size as u32,
+        ppx: sensor.ppx / scale,
+        ppy: sensor.ppy / scale,
+        fx: sensor.fx,
+        fy: sensor.fy,
+        ccx: cx,
+        ccy: cy,
+        camera_matrix: [
+            [k[0][0] * scale, 0.0, cx],
+            [0.0, k[1][1] * scale, cy],
+            [0.0, 0.0, 1.0],
+        ],
+        dist_coeffs: if distortion {
+            sensor.dist_coeffs
+        } else {
+            [0.0; 5]
+        },
+    }
+}
+
+/// Image file name of frame `index` (SPEED+ numbering starts at 1).
+pub fn frame_filename(index: u32) -> String {
+    format!("img{:06}.png", index + 1)
+}
+
+/// Render every frame of `scene` and write the dataset to `out`. `progress` is called once per
+/// finished frame (from worker threads). Output is staged in a sibling folder and moved into
+/// place when complete; an existing `out` is replaced only if it is empty or a simulated
+/// dataset.
+pub fn simulate(
+    scene: &Scene,
+    out: &Path,
+    progress: &(dyn Fn() + Sync),
+) -> Result<SimulationReport> {
+    let start = Instant::now();
+    let spec = &scene.spec;
+    check_replaceable(out)?;
+    let target = Target::build(scene)?;
+    let sensor =
+        SpeedCamera::read(&scene.resolve_path("camera.intrinsics", &spec.camera.intrinsics)?)?;
+    let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
+    let renderer = Renderer {
+        target: &target,
+        effects: &spec.effects,
+        camera: camera_file.pinhole(),
+        lens: spec.camera.distortion.then_some(&camera_file),
+        antialias: spec.antialias,
+        seed: spec.seed,
+    };
+    let staging = sibling(out, "partial");
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging).map_err(|e| HostError::io(&staging, e))?;
+    }
+    let (center, radius) = (target.center(), target.radius());
+
+    let frames = (0..spec.frames)
+        .into_par_iter()
+        .map(|index| {
+            let mut times = StageTimes::default();
+            let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index);
+            let filename = frame_filename(index);
+            let (q, r) = match &spec.effects.label_noise {
+                Some(noise) => times.time(Stage::LabelNoise, || {
+                    trajectory::noisy_label(&view, noise, spec.seed, index)
+                }),
+                None => (view.body_to_camera, view.target_in_camera),
+            };
+            let label = Label::new(filename.clone(), q, r);
+            let exact = Label::new(filename.clone(), view.body_to_camera, view.target_in_camera);
+            let image = renderer.render(&view, index, &mut times);
+            times.time(Stage::Write, || {
+                let size = spec.size as u32;
+                write_png(
+                    &staging.join("images").join(&filename),
+                    size,
+                    size,
+                    image.channels,
+                    &image.pixels,
+                )?;
+                write_png(
+                    &staging.join("masks").join(&filename),
+                    size,
+                    size,
+                    1,
+                    &image.mask,
+                )
+            })?;
+            progress();
+            let truth = TruthFrame {
+                filename,
+                q_vbs2tango_true: exact.q_vbs2tango,
+                r_vo2to_vbs_true: exact.r_vo2to_vbs,
+                sun_direction_body: view.sun_body.to_array().map(f64::from),
+                exposure: view.exposure as f64,
+            };
+            Ok((label, truth, times))
+        })
+        .collect::<Result<Vec<_>>>();
+    let frames = match frames {
+        Ok(frames) => frames,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&staging);
+            return Err(e);
+        }
+    };
+
+    let times = frames
+        .iter()
+        .fold(StageTimes::default(), |total, (_, _, times)| {
+            total.add(times)
+        });
+    let labels: Vec<Label> = frames.iter().map(|(label, _, _)| label.clone()).collect();
+    let (box_min, box_max) = target.scene_box();
+    let truth = Truth {
+        target_box_min: box_min,
+        target_box_max: box_max,
+        frames: frames.into_iter().map(|(_, truth, _)| truth).collect(),
+    };
+    write_labels(&staging.join("labels.json"), &labels)?;
+    truth.write(&staging.join("truth.json"))?;
+    camera_file.write(&staging.join("camera.json"))?;
+    crate::io::write_atomic(&staging.join("scene.toml"), scene.to_toml()?.as_bytes())?;
+    move_into_place(&staging, out)?;
+
+    Ok(SimulationReport {
+        frames: spec.frames,
+        size: spec.size,
+        triangles: target.triangle_count(),
+        effects: spec.effects.clone(),
+        times,
+        wall_time: start.elapsed(),
+        out: out.to_path_buf(),
+        labels,
+        truth,
+    })
+}
+
+/// `out` may be replaced if it does not exist, is empty, or holds a simulated dataset.
+fn check_replaceable(out: &Path) -> Result<()> {
+    if !out.exists() {
+        return Ok(());
+    }
+    let is_empty = std::fs::read_dir(out)
+        .map_err(|e| HostError::io(out, e))?
+        .next()
+        .is_none();
+    if is_empty || out.join("truth.json").is_file() {
+        Ok(())
+    } else {
+        Err(HostError::invalid(
+            out,
+            "exists and is not a simulated dataset; refusing to replace it",
+        ))
+    }
+}
+
+fn sibling(out: &Path, what: &str) -> PathBuf {
+    let mut name = out
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_else(|| "dataset".into());
+    name.push(format!(".{what}-{}", std::process::id()));
+    out.with_file_name(name)
+}
+
+fn move_into_place(staging: &Path, out: &Path) -> Result<()> {
+    let old = sibling(out, "old");
+    if out.exists() {
+        std::fs::rename(out, &old).map_err(|e| HostError::io(out, e))?;
+    }
+    std::fs::rename(staging, out).map_err(|e| HostError::io(out, e))?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old).map_err(|e| HostError::io(&old, e))?;
+    }
+    Ok(())
+}
+
+/// Tile up to `columns` x `columns` frames, evenly spread through the dataset, into one RGB
+/// image with 2-pixel gaps. Returns (width, height, pixels).
+pub fn contact_sheet(dataset: &Dataset, columns: usize) -> Result<(u32, u32, Vec<u8>)> {
+    let frames = &dataset.frames;
+    let first = frames
+        .first()
+        .ok_or_else(|| HostError::invalid(&dataset.source, "no frames to tile"))?;
+    let (tile_w, tile_h) = (first.camera.width as usize, first.camera.height as usize);
+    let columns = columns.clamp(1, frames.len());
+    let count = (columns * columns).min(frames.len());
+    let rows = count.div_ceil(columns);
+    let gap = 2;
+    let (width, height) = (columns * (tile_w + gap) - gap, rows * (tile_h + gap) - gap);
+    let mut sheet = vec![32u8; width * height * 3];
+    for tile in 0..count {
+        let frame = &frames[tile * frames.len() / count];
+        if (frame.camera.width as usize, frame.camera.height as usize) != (tile_w, tile_h) {
+            return Err(HostError::invalid(
+                &frame.name,
+                "frames of different sizes cannot be tiled",
+            ));
+        }
+        let (x0, y0) = (
+            (tile % columns) * (tile_w + gap),
+            (tile / columns) * (tile_h + gap),
+        );
+        for y in 0..tile_h {
+            let row = &frame.pixels[y * tile_w * 3..(y + 1) * tile_w * 3];
+            let at = ((y0 + y) * width + x0) * 3;
+            sheet[at..at + tile_w * 3].copy_from_slice(row);
+        }
+    }
+    Ok((width as u32, height as u32, sheet))
+}

@@ -1,0 +1,647 @@
+//! Scene files: the TOML schema, its checks, the shipped presets and the resolution of the data
+//! paths a scene names.
+//!
+//! Every problem with a scene file is reported once, as a [`HostError::Field`] naming the file
+//! and the dotted path of the offending field (`effects.glare`, `poses.attitude`, ...).
+
+use crate::error::{HostError, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// The repository root at build time: data paths in the presets are relative to it.
+const REPO_ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+
+/// The presets shipped in `scenes/`, embedded so that they work from any folder.
+const PRESETS: [(&str, &str); 3] = [
+    ("synthetic", include_str!("../../../scenes/synthetic.toml")),
+    ("lightbox", include_str!("../../../scenes/lightbox.toml")),
+    ("sunlamp", include_str!("../../../scenes/sunlamp.toml")),
+];
+
+/// Names of the shipped presets.
+pub fn preset_names() -> impl Iterator<Item = &'static str> {
+    PRESETS.iter().map(|(name, _)| *name)
+}
+
+/// A scene file as written (every field documented in `docs/simulator.md`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneSpec {
+    pub name: String,
+    pub frames: u32,
+    pub seed: u64,
+    /// Output images are `size` x `size` pixels.
+    pub size: u16,
+    /// Each pixel averages `antialias` x `antialias` rays.
+    #[serde(default = "one")]
+    pub antialias: u32,
+    pub target: TargetSpec,
+    pub camera: CameraSpec,
+    pub poses: PoseSpec,
+    pub sun: SunSpec,
+    /// Materials defined by the scene (they may replace the built-in ones of the same name).
+    #[serde(default)]
+    pub materials: BTreeMap<String, MaterialSpec>,
+    #[serde(default)]
+    pub effects: Effects,
+}
+
+fn one() -> u32 {
+    1
+}
+
+fn unit_scale() -> f32 {
+    1.0
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "model", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TargetSpec {
+    /// Procedural TANGO (body, solar panel, three antennas) sized by the SPEED+ landmarks.
+    /// Parts: `body`, `panel`, `antenna`.
+    Tango {
+        landmarks: String,
+        #[serde(default)]
+        materials: BTreeMap<String, String>,
+    },
+    /// A Wavefront OBJ mesh; its parts are the OBJ objects/groups, named as in the file.
+    Mesh {
+        path: String,
+        /// Multiplies the mesh coordinates to give metres.
+        #[serde(default = "unit_scale")]
+        scale: f32,
+        #[serde(default)]
+        materials: BTreeMap<String, String>,
+    },
+}
+
+impl TargetSpec {
+    /// Part name -> material name; the key `default` covers parts not listed.
+    pub fn materials(&self) -> &BTreeMap<String, String> {
+        match self {
+            TargetSpec::Tango { materials, .. } | TargetSpec::Mesh { materials, .. } => materials,
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    /// A SPEED+ `camera.json`; its intrinsics are scaled to the output size.
+    pub intrinsics: String,
+    /// Render with the file's lens distortion.
+    #[serde(default)]
+    pub distortion: bool,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum PoseSpec {
+    /// SHIRT-like: the camera spirals around and towards the target (distance and elevation
+    /// change linearly, azimuth makes `turns` turns) while the target spins slowly.
+    Approach {
+        /// Camera distance to the target centre at the first and the last frame, metres.
+        distance_m: [f32; 2],
+        /// Camera elevation above the orbit plane at the first and the last frame, degrees.
+        elevation_deg: [f32; 2],
+        turns: f32,
+        /// Target attitude in the orbit frame at frame 0 (scalar-first quaternion).
+        attitude: [f32; 4],
+        /// Target spin about a body axis, degrees per frame.
+        spin_axis: [f32; 3],
+        spin_deg_per_frame: f32,
+    },
+    /// SPEED+-like: independent random SE(3) poses, target kept in view.
+    Random {
+        /// Distance range, metres.
+        distance_m: [f32; 2],
+    },
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SunSpec {
+    pub path: SunPath,
+    /// Direction to the sun in the orbit frame (x along track, z towards the Earth) at frame 0
+    /// (`orbit`, `fixed`); unused by `random`.
+    #[serde(default = "default_sun_direction")]
+    pub direction: [f32; 3],
+    /// Axis the sun direction turns about along the orbit (`orbit` only).
+    #[serde(default = "default_orbit_axis")]
+    pub axis: [f32; 3],
+    #[serde(default)]
+    pub deg_per_frame: f32,
+    /// Largest angle between the directions target -> sun and target -> camera (`random`
+    /// only): below 180 the camera sees mostly lit faces.
+    #[serde(default = "default_max_phase")]
+    pub max_phase_deg: f32,
+}
+
+fn default_max_phase() -> f32 {
+    180.0
+}
+
+fn default_sun_direction() -> [f32; 3] {
+    [1.0, 0.0, -1.0]
+}
+
+fn default_orbit_axis() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SunPath {
+    Fixed,
+    Orbit,
+    Random,
+}
+
+/// Surface reflectance: Lambert diffuse plus a normalised Blinn-Phong lobe, optionally with a
+/// grid of bright lines (solar-cell busbars, MLI seams) of the given pitch.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialSpec {
+    pub diffuse: [f32; 3],
+    #[serde(default)]
+    pub specular: [f32; 3],
+    #[serde(default = "default_shininess")]
+    pub shininess: f32,
+    #[serde(default)]
+    pub grid_pitch_m: f32,
+    #[serde(default)]
+    pub grid_contrast: f32,
+}
+
+fn default_shininess() -> f32 {
+    20.0
+}
+
+/// The built-in materials: `paint` (white diffuse), `mli` (gold foil, broad specular lobe),
+/// `solar_cell` (dark blue, glossy, cell grid) and `metal` (grey, sharp specular).
+pub fn builtin_material(name: &str) -> Option<MaterialSpec> {
+    let material = |diffuse, specular, shininess, grid_pitch_m, grid_contrast| MaterialSpec {
+        diffuse,
+        specular,
+        shininess,
+        grid_pitch_m,
+        grid_contrast,
+    };
+    match name {
+        "paint" => Some(material([0.80, 0.80, 0.78], [0.04; 3], 10.0, 0.0, 0.0)),
+        "mli" => Some(material(
+            [0.35, 0.26, 0.10],
+            [0.75, 0.58, 0.28],
+            8.0,
+            0.12,
+            0.35,
+        )),
+        "solar_cell" => Some(material(
+            [0.03, 0.05, 0.14],
+            [0.30, 0.30, 0.34],
+            120.0,
+            0.04,
+            4.0,
+        )),
+        "metal" => Some(material(
+            [0.25, 0.25, 0.26],
+            [0.85, 0.85, 0.85],
+            60.0,
+            0.0,
+            0.0,
+        )),
+        _ => None,
+    }
+}
+
+/// The effects a scene asks for; an absent table means the effect is off and never computed.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Effects {
+    pub sun: Option<SunLight>,
+    pub shadows: Option<Shadows>,
+    pub albedo: Option<EarthAlbedo>,
+    pub specular: Option<Specular>,
+    pub exposure: Option<Exposure>,
+    pub flare: Option<Flare>,
+    pub noise: Option<SensorNoise>,
+    pub grayscale: Option<Grayscale>,
+    pub label_noise: Option<LabelNoise>,
+}
+
+/// Direct sunlight on Lambertian surfaces; a white surface facing the sun reaches `irradiance`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SunLight {
+    #[serde(default = "unit_scale")]
+    pub irradiance: f32,
+}
+
+/// Shadow rays towards the sun against the target itself.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Shadows {}
+
+/// Dim diffuse fill light from the sunlit Earth.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EarthAlbedo {
+    /// Irradiance of the fill light relative to direct sun when the Earth is fully lit.
+    pub strength: f32,
+    /// Direction to the Earth in the orbit frame.
+    #[serde(default = "default_earth_direction")]
+    pub earth_direction: [f32; 3],
+}
+
+fn default_earth_direction() -> [f32; 3] {
+    [0.0, 0.0, 1.0]
+}
+
+/// The specular lobes of the materials (without it every surface is Lambertian).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Specular {}
+
+/// Per-frame exposure drawn log-uniformly in `range` (values above 1 over-expose and clip to
+/// white, values below 1 under-expose); `black_level` crushes the darkest tones to black.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Exposure {
+    pub range: [f32; 2],
+    #[serde(default)]
+    pub black_level: f32,
+}
+
+/// Bloom: the light above `threshold` is blurred (Gaussian, `sigma_px`) and added back.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Flare {
+    #[serde(default = "unit_scale")]
+    pub threshold: f32,
+    pub sigma_px: f32,
+    pub strength: f32,
+}
+
+/// Sensor noise in electrons: shot noise (Gaussian approximation of Poisson) with `full_well`
+/// electrons at white, plus `read_noise` electrons RMS.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorNoise {
+    pub full_well: f32,
+    pub read_noise: f32,
+}
+
+/// One luminance channel, like the real camera (PNG written as 8-bit grayscale).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Grayscale {}
+
+/// Gaussian noise on the labels written for training: a rotation about a random axis by an
+/// angle with standard deviation `rotation_deg`, and `translation_m` per axis.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabelNoise {
+    pub rotation_deg: f32,
+    pub translation_m: f32,
+}
+
+/// A checked scene, with where it came from (for messages and relative paths).
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub spec: SceneSpec,
+    /// The scene file (for a preset: its file in `scenes/`).
+    pub origin: PathBuf,
+    /// Folders a relative data path is tried against, in order.
+    search_dirs: Vec<PathBuf>,
+}
+
+impl Scene {
+    /// A preset name (`synthetic`, `lightbox`, `sunlamp`) or the path of a scene file.
+    pub fn load(name_or_path: &str) -> Result<Scene> {
+        let cwd = std::env::current_dir().unwrap_or_default();
+        if let Some((name, text)) = PRESETS.iter().find(|(name, _)| *name == name_or_path) {
+            let origin = Path::new(REPO_ROOT)
+                .join("scenes")
+                .join(format!("{name}.toml"));
+            return Scene::parse(text, origin, vec![cwd, PathBuf::from(REPO_ROOT)]);
+        }
+        let path = Path::new(name_or_path);
+        if !path.is_file() && path.extension().is_none() {
+            let names: Vec<_> = preset_names().collect();
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "no such scene file, and not a preset (presets: {})",
+                    names.join(", ")
+                ),
+            ));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+        let scene_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Scene::parse(
+            &text,
+            path.to_path_buf(),
+            vec![scene_dir, cwd, PathBuf::from(REPO_ROOT)],
+        )
+    }
+
+    /// Parse and check scene text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: PathBuf, search_dirs: Vec<PathBuf>) -> Result<Scene> {
+        let table: toml::Table = toml::from_str(text)
+            .map_err(|e| HostError::invalid(&origin, format!("TOML syntax: {e}")))?;
+        check_finite(&origin, "", &toml::Value::Table(table.clone()))?;
+        let spec: SceneSpec = serde_path_to_error::deserialize(table).map_err(|e| {
+            let field = e.path().to_string();
+            HostError::field(&origin, field, e.into_inner().to_string())
+        })?;
+        spec.check()
+            .map_err(|(field, reason)| HostError::field(&origin, field, reason))?;
+        Ok(Scene {
+            spec,
+            origin,
+            search_dirs,
+        })
+    }
+
+    /// Resolve a data path named by `field`: absolute, or relative to the scene's folder, the
+    /// current folder or the repository root (first that exists).
+    pub fn resolve_path(&self, field: &str, path: &str) -> Result<PathBuf> {
+        let given = Path::new(path);
+        let candidates: Vec<PathBuf> = if given.is_absolute() {
+            vec![given.to_path_buf()]
+        } else {
+            self.search_dirs.iter().map(|dir| dir.join(given)).collect()
+        };
+        candidates
+            .iter()
+            .find(|candidate| candidate.is_file())
+            .cloned()
+            .ok_or_else(|| {
+                let tried: Vec<_> = candidates.iter().map(|c| c.display().to_string()).collect();
+                HostError::field(
+                    &self.origin,
+                    field,
+                    format!("file `{path}` not found (tried {})", tried.join(", ")),
+                )
+            })
+    }
+
+    /// The material a part uses: the scene's `[materials.NAME]`, else a built-in one.
+    pub fn material(&self, part: &str) -> Result<MaterialSpec> {
+        let materials = self.spec.target.materials();
+        let name = materials
+            .get(part)
+            .or_else(|| materials.get("default"))
+            .map_or("paint", String::as_str);
+        self.spec
+            .materials
+            .get(name)
+            .cloned()
+            .or_else(|| builtin_material(name))
+            .ok_or_else(|| {
+                HostError::field(
+                    &self.origin,
+                    format!("target.materials.{part}"),
+                    format!("unknown material `{name}`"),
+                )
+            })
+    }
+
+    /// The scene as TOML (after any overrides), to store beside a dataset.
+    pub fn to_toml(&self) -> Result<String> {
+        let body = toml::to_string(&self.spec).map_err(|e| {
+            HostError::invalid(&self.origin, format!("cannot write the scene as TOML: {e}"))
+        })?;
+        Ok(format!(
+            "# Scene used to simulate this dataset (from {}).\n{body}",
+            self.origin.display()
+        ))
+    }
+}
+
+/// Reject NaN and infinite numbers anywhere in the file (TOML allows `nan` and `inf`).
+fn check_finite(origin: &Path, path: &str, value: &toml::Value) -> Result<()> {
+    let join = |key: &str| {
+        if path.is_empty() {
+            key.to_owned()
+        } else {
+            format!("{path}.{key}")
+        }
+    };
+    match value {
+        toml::Value::Float(v) if !v.is_finite() => Err(HostError::field(
+            origin,
+            path,
+            format!("not a finite number: {v}"),
+        )),
+        toml::Value::Table(table) => table
+            .iter()
+            .try_for_each(|(key, v)| check_finite(origin, &join(key), v)),
+        toml::Value::Array(items) => items
+            .iter()
+            .enumerate()
+            .try_for_each(|(i, v)| check_finite(origin, &format!("{path}[{i}]"), v)),
+        _ => Ok(()),
+    }
+}
+
+type Problem = (String, String);
+
+fn problem(field: &str, reason: impl Into<String>) -> Problem {
+    (field.to_owned(), reason.into())
+}
+
+fn ensure(ok: bool, field: &str, reason: &str) -> std::result::Result<(), Problem> {
+    if ok {
+        Ok(())
+    } else {
+        Err(problem(field, reason))
+    }
+}
+
+fn non_zero(v: &[f32]) -> bool {
+    v.iter().map(|x| x * x).sum::<f32>() > 1e-12
+}
+
+impl SceneSpec {
+    /// Ranges and consistency the types alone do not express.
+    fn check(&self) -> std::result::Result<(), Problem> {
+        ensure(self.frames >= 1, "frames", "must be at least 1")?;
+        ensure(self.size >= 8, "size", "must be at least 8 pixels")?;
+        ensure(
+            (1..=4).contains(&self.antialias),
+            "antialias",
+            "must be 1, 2, 3 or 4",
+        )?;
+        if let TargetSpec::Mesh { scale, .. } = &self.target {
+            ensure(*scale > 0.0, "target.scale", "must be positive")?;
+        }
+        match &self.poses {
+            PoseSpec::Approach {
+                distance_m,
+                elevation_deg,
+                attitude,
+                spin_axis,
+                ..
+            } => {
+                ensure(
+                    distance_m.iter().all(|d| *d > 0.0),
+                    "poses.distance_m",
+                    "distances must be positive",
+                )?;
+                ensure(
+                    elevation_deg.iter().all(|e| e.abs() < 89.0),
+                    "poses.elevation_deg",
+                    "elevations must lie strictly between -89 and 89 degrees",
+                )?;
+                ensure(non_zero(attitude), "poses.attitude", "zero quaternion")?;
+                ensure(non_zero(spin_axis), "poses.spin_axis", "zero vector")?;
+            }
+            PoseSpec::Random { distance_m } => {
+                ensure(
+                    distance_m[0] > 0.0 && distance_m[0] <= distance_m[1],
+                    "poses.distance_m",
+                    "must be [min, max] with 0 < min <= max",
+                )?;
+            }
+        }
+        ensure(
+            non_zero(&self.sun.direction),
+            "sun.direction",
+            "zero vector",
+        )?;
+        ensure(non_zero(&self.sun.axis), "sun.axis", "zero vector")?;
+        ensure(
+            (10.0..=180.0).contains(&self.sun.max_phase_deg),
+            "sun.max_phase_deg",
+            "must be between 10 and 180 degrees",
+        )?;
+        for (name, material) in &self.materials {
+            let field = format!("materials.{name}");
+            let in_unit = |c: &[f32; 3]| c.iter().all(|v| (0.0..=1.0).contains(v));
+            ensure(
+                in_unit(&material.diffuse),
+                &field,
+                "diffuse must be within [0, 1]",
+            )?;
+            ensure(
+                in_unit(&material.specular),
+                &field,
+                "specular must be within [0, 1]",
+            )?;
+            ensure(
+                material.shininess > 0.0,
+                &field,
+                "shininess must be positive",
+            )?;
+            ensure(
+                material.grid_pitch_m >= 0.0 && material.grid_contrast >= 0.0,
+                &field,
+                "grid must be >= 0",
+            )?;
+        }
+        for (part, name) in self.target.materials() {
+            ensure(
+                self.materials.contains_key(name) || builtin_material(name).is_some(),
+                &format!("target.materials.{part}"),
+                "unknown material (built-in: paint, mli, solar_cell, metal)",
+            )?;
+        }
+        self.effects.check()
+    }
+}
+
+impl Effects {
+    fn check(&self) -> std::result::Result<(), Problem> {
+        ensure(
+            self.sun.is_some() || self.albedo.is_some(),
+            "effects",
+            "no light: enable `sun` or `albedo`",
+        )?;
+        if let Some(sun) = &self.sun {
+            ensure(
+                sun.irradiance > 0.0,
+                "effects.sun.irradiance",
+                "must be positive",
+            )?;
+        }
+        ensure(
+            self.sun.is_some() || self.shadows.is_none(),
+            "effects.shadows",
+            "needs the `sun` effect",
+        )?;
+        ensure(
+            self.sun.is_some() || self.specular.is_none(),
+            "effects.specular",
+            "needs the `sun` effect",
+        )?;
+        if let Some(albedo) = &self.albedo {
+            ensure(
+                albedo.strength >= 0.0,
+                "effects.albedo.strength",
+                "must be >= 0",
+            )?;
+            ensure(
+                non_zero(&albedo.earth_direction),
+                "effects.albedo.earth_direction",
+                "zero vector",
+            )?;
+        }
+        if let Some(exposure) = &self.exposure {
+            let [low, high] = exposure.range;
+            ensure(
+                low > 0.0 && low <= high,
+                "effects.exposure.range",
+                "must be [min, max] with 0 < min <= max",
+            )?;
+            ensure(
+                (0.0..1.0).contains(&exposure.black_level),
+                "effects.exposure.black_level",
+                "must be in [0, 1)",
+            )?;
+        }
+        if let Some(flare) = &self.flare {
+            ensure(
+                flare.sigma_px > 0.0 && flare.sigma_px <= 64.0,
+                "effects.flare.sigma_px",
+                "must be in (0, 64]",
+            )?;
+            ensure(
+                flare.strength >= 0.0,
+                "effects.flare.strength",
+                "must be >= 0",
+            )?;
+            ensure(
+                flare.threshold >= 0.0,
+                "effects.flare.threshold",
+                "must be >= 0",
+            )?;
+        }
+        if let Some(noise) = &self.noise {
+            ensure(
+                noise.full_well > 0.0,
+                "effects.noise.full_well",
+                "must be positive",
+            )?;
+            ensure(
+                noise.read_noise >= 0.0,
+                "effects.noise.read_noise",
+                "must be >= 0",
+            )?;
+        }
+        if let Some(labels) = &self.label_noise {
+            ensure(
+                labels.rotation_deg >= 0.0,
+                "effects.label_noise.rotation_deg",
+                "must be >= 0",
+            )?;
+            ensure(
+                labels.translation_m >= 0.0,
+                "effects.label_noise.translation_m",
+                "must be >= 0",
+            )?;
+        }
+        Ok(())
+    }
+}

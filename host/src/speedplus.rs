@@ -1,0 +1,862 @@
+//! SPEED+ / SHIRT datasets: the label format (read and written), the camera file, the
+//! simulator's truth file, and a loader that turns any of these layouts into a [`Dataset`].
+//!
+//! Layouts the loader accepts (`path` is a label file or a folder):
+//! - simulator output: `labels.json`, `camera.json`, `images/`, `masks/`, `truth.json`;
+//! - SPEED+: `synthetic/train.json` + `synthetic/images/`, `lightbox/test.json` +
+//!   `lightbox/images/`, `sunlamp/test.json` + `sunlamp/images/`, `camera.json` at the root;
+//! - SHIRT: `roeN/roeN.json` + `roeN/{synthetic,lightbox}/images/` (pick the domain in
+//!   [`LoadOptions::domain`]), `camera.json` at the root.
+//!
+//! Labels: `p_cam = R(q) p_body + r` with a scalar-first `q_vbs2tango[_true]` and
+//! `r_Vo2To_vbs[_true]` in metres. The world frame of the loaded dataset is the target body frame.
+
+use crate::dataset::{Dataset, Frame};
+use crate::error::{HostError, Result};
+use crate::io::write_atomic;
+use orbit_nerf_core::glam::{Quat, Vec3};
+use orbit_nerf_core::{Camera, Pose};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+
+/// Box (body frame, metres) holding TANGO when no `truth.json` gives the target's box: the extents
+/// of the 11 SPEED+ devkit landmarks (about 1.09 x 1.07 x 0.32 m) plus about 10 % margin.
+pub const TANGO_SCENE_BOX: ([f32; 3], [f32; 3]) = ([-0.60, -0.64, -0.20], [0.60, 0.55, 0.20]);
+
+/// How far a label quaternion's norm may stray from 1 before it is rejected as non-unit.
+const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
+
+/// One pose label in SPEED+ form.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Label {
+    pub filename: String,
+    /// Scalar-first quaternion of the rotation from the target body frame to the camera frame.
+    #[serde(rename = "q_vbs2tango_true")]
+    pub q_vbs2tango: [f64; 4],
+    /// Target origin in camera axes (x right, y down, z forward), metres.
+    #[serde(rename = "r_Vo2To_vbs_true")]
+    pub r_vo2to_vbs: [f64; 3],
+}
+
+impl Label {
+    /// Label for a body-to-camera rotation `q` and a target position `r` in camera axes.
+    pub fn new(filename: String, q: Quat, r: Vec3) -> Label {
+        // SPEED+ quaternions are scalar-first; keep the scalar part non-negative so one rotation
+        // has one label.
+        let q = if q.w < 0.0 { -q } else { q };
+        Label {
+            filename,
+            q_vbs2tango: [q.w, q.x, q.y, q.z].map(f64::from),
+            r_vo2to_vbs: [r.x, r.y, r.z].map(f64::from),
+        }
+    }
+
+    /// The rotation body -> camera (normalised).
+    pub fn rotation(&self) -> Quat {
+        let [w, x, y, z] = self.q_vbs2tango.map(|v| v as f32);
+        Quat::from_xyzw(x, y, z, w).normalize()
+    }
+
+    pub fn translation(&self) -> Vec3 {
+        let [x, y, z] = self.r_vo2to_vbs.map(|v| v as f32);
+        Vec3::new(x, y, z)
+    }
+
+    /// The camera-to-body pose this label describes.
+    pub fn pose(&self) -> Option<Pose> {
+        let [w, x, y, z] = self.q_vbs2tango.map(|v| v as f32);
+        Pose::from_world_to_camera(Quat::from_xyzw(x, y, z, w), self.translation())
+    }
+}
+
+/// Read a SPEED+ label file (`q_vbs2tango_true` or `q_vbs2tango`, `r_Vo2To_vbs_true` or
+/// `r_Vo2To_vbs`). Rejects zero, non-unit and non-finite quaternions and non-finite positions.
+pub fn read_labels(path: &Path) -> Result<Vec<Label>> {
+    let value = read_json(path)?;
+    let entries = value
+        .as_array()
+        .ok_or_else(|| HostError::invalid(path, "expected a JSON list of labels"))?;
+    entries
+        .iter()
+        .enumerate()
+        .map(|(index, entry)| parse_label(path, index, entry))
+        .collect()
+}
+
+/// Write labels as a SPEED+ label file.
+pub fn write_labels(path: &Path, labels: &[Label]) -> Result<()> {
+    write_json(path, labels)
+}
+
+fn parse_label(path: &Path, index: usize, entry: &Value) -> Result<Label> {
+    let field = |name: &str| format!("[{index}].{name}");
+    let filename = entry
+        .get("filename")
+        .and_then(Value::as_str)
+        .ok_or_else(|| HostError::field(path, field("filename"), "missing or not a string"))?;
+    let (q_key, q_value) = first_key(entry, &["q_vbs2tango_true", "q_vbs2tango"])
+        .ok_or_else(|| HostError::field(path, field("q_vbs2tango_true"), "missing"))?;
+    let q: [f64; 4] = number_array(path, &field(q_key), q_value)?;
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if norm < 1e-9 {
+        return Err(HostError::field(path, field(q_key), "zero quaternion"));
+    }
+    if (norm - 1.0).abs() > UNIT_QUATERNION_TOLERANCE {
+        return Err(HostError::field(
+            path,
+            field(q_key),
+            format!("not a unit quaternion (norm {norm})"),
+        ));
+    }
+    let (r_key, r_value) = first_key(entry, &["r_Vo2To_vbs_true", "r_Vo2To_vbs"])
+        .ok_or_else(|| HostError::field(path, field("r_Vo2To_vbs_true"), "missing"))?;
+    let r: [f64; 3] = number_array(path, &field(r_key), r_value)?;
+    Ok(Label {
+        filename: filename.to_owned(),
+        q_vbs2tango: q,
+        r_vo2to_vbs: r,
+    })
+}
+
+fn first_key<'a>(entry: &'a Value, keys: &[&'static str]) -> Option<(&'static str, &'a Value)> {
+    keys.iter()
+        .find_map(|&key| entry.get(key).map(|value| (key, value)))
+}
+
+fn number_array<const N: usize>(path: &Path, field: &str, value: &Value) -> Result<[f64; N]> {
+    let items = value
+        .as_array()
+        .filter(|items| items.len() == N)
+        .ok_or_else(|| HostError::field(path, field, format!("expected a list of {N} numbers")))?;
+    let mut out = [0.0; N];
+    for (slot, item) in out.iter_mut().zip(items) {
+        *slot = item
+            .as_f64()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| HostError::field(path, field, format!("not a finite number: {item}")))?;
+    }
+    Ok(out)
+}
+
+fn number(path: &Path, object: &Value, key: &str) -> Result<f64> {
+    object
+        .get(key)
+        .and_then(Value::as_f64)
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| HostError::field(path, key, "missing or not a finite number"))
+}
+
+fn read_json(path: &Path) -> Result<Value> {
+    let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+    serde_json::from_str(&text)
+        .map_err(|e| HostError::invalid(path, format!("malformed JSON: {e}")))
+}
+
+fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<()> {
+    let mut text = serde_json::to_string_pretty(value)
+        .map_err(|e| HostError::invalid(path, format!("cannot encode JSON: {e}")))?;
+    text.push('\n');
+    write_atomic(path, text.as_bytes())
+}
+
+/// The SPEED+ camera file (`camera.json`): sensor size, pixel pitch, focal lengths in metres,
+/// principal point, the pixel camera matrix and OpenCV distortion `[k1, k2, p1, p2, k3]`.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SpeedCamera {
+    #[serde(rename = "Nu")]
+    pub width: u32,
+    #[serde(rename = "Nv")]
+    pub height: u32,
+    /// Pixel pitch in metres.
+    pub ppx: f64,
+    pub ppy: f64,
+    /// Focal lengths in metres (`fx / ppx` is the focal length in pixels).
+    pub fx: f64,
+    pub fy: f64,
+    pub ccx: f64,
+    pub ccy: f64,
+    #[serde(rename = "cameraMatrix")]
+    pub camera_matrix: [[f64; 3]; 3],
+    #[serde(rename = "distCoeffs")]
+    pub dist_coeffs: [f64; 5],
+}
+
+impl SpeedCamera {
+    /// Read and check a camera file; `distCoeffs` may be absent (no distortion).
+    pub fn read(path: &Path) -> Result<SpeedCamera> {
+        let value = read_json(path)?;
+        let size = |key: &str| -> Result<u32> {
+            value
+                .get(key)
+                .and_then(Value::as_u64)
+                .filter(|&v| v > 0 && v <= u16::MAX as u64)
+                .map(|v| v as u32)
+                .ok_or_else(|| {
+                    HostError::field(path, key, "missing or not an image size in 1..=65535")
+                })
+        };
+        let rows = value
+            .get("cameraMatrix")
+            .and_then(Value::as_array)
+            .filter(|rows| rows.len() == 3)
+            .ok_or_else(|| HostError::field(path, "cameraMatrix", "expected a 3x3 matrix"))?;
+        let mut camera_matrix = [[0.0; 3]; 3];
+        for (out, row) in camera_matrix.iter_mut().zip(rows) {
+            *out = number_array(path, "cameraMatrix", row)?;
+        }
+        let dist_coeffs = match value.get("distCoeffs") {
+            Some(coeffs) => number_array(path, "distCoeffs", coeffs)?,
+            None => [0.0; 5],
+        };
+        let camera = SpeedCamera {
+            width: size("Nu")?,
+            height: size("Nv")?,
+            ppx: number(path, &value, "ppx")?,
+            ppy: number(path, &value, "ppy")?,
+            fx: number(path, &value, "fx")?,
+            fy: number(path, &value, "fy")?,
+            ccx: number(path, &value, "ccx")?,
+            ccy: number(path, &value, "ccy")?,
+            camera_matrix,
+            dist_coeffs,
+        };
+        if !camera.pinhole().is_valid() {
+            return Err(HostError::field(
+                path,
+                "cameraMatrix",
+                "focal lengths must be positive",
+            ));
+        }
+        Ok(camera)
+    }
+
+    pub fn write(&self, path: &Path) -> Result<()> {
+        write_json(path, self)
+    }
+
+    /// The pinhole intrinsics in pixels (from `cameraMatrix`).
+    pub fn pinhole(&self) -> Camera {
+        let k = &self.camera_matrix;
+        Camera {
+            width: self.width as u16,
+            height: self.height as u16,
+            fx: k[0][0] as f32,
+            fy: k[1][1] as f32,
+            cx: k[0][2] as f32,
+            cy: k[1][2] as f32,
+        }
+    }
+
+    pub fn has_distortion(&self) -> bool {
+        self.dist_coeffs.iter().any(|&c| c != 0.0)
+    }
+
+    /// Apply the OpenCV distortion to normalised image coordinates `(x, y)` (z = 1).
+    pub fn distort(&self, x: f32, y: f32) -> (f32, f32) {
+        let [k1, k2, p1, p2, k3] = self.dist_coeffs.map(|c| c as f32);
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        (
+            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+        )
+    }
+
+    /// Invert [`SpeedCamera::distort`] by fixed-point iteration (as OpenCV's `undistortPoints`).
+    pub fn undistort(&self, xd: f32, yd: f32) -> (f32, f32) {
+        let [k1, k2, p1, p2, k3] = self.dist_coeffs.map(|c| c as f32);
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..20 {
+            let r2 = x * x + y * y;
+            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+            x = (xd - dx) / radial;
+            y = (yd - dy) / radial;
+        }
+        (x, y)
+    }
+}
+
+/// What the simulator knows exactly (`truth.json`): the true pose of every frame, the sun
+/// direction and exposure it was rendered with, and the box that holds the target.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Truth {
+    /// Box holding the target, body frame, metres (with a margin).
+    pub target_box_min: [f32; 3],
+    pub target_box_max: [f32; 3],
+    pub frames: Vec<TruthFrame>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TruthFrame {
+    pub filename: String,
+    /// Exact body-to-camera rotation (scalar first) and target position in camera axes.
+    pub q_vbs2tango_true: [f64; 4],
+    #[serde(rename = "r_Vo2To_vbs_true")]
+    pub r_vo2to_vbs_true: [f64; 3],
+    /// Unit vector from the target towards the sun, body frame.
+    pub sun_direction_body: [f64; 3],
+    /// Exposure multiplier the frame was rendered with (1 = nominal).
+    pub exposure: f64,
+}
+
+impl TruthFrame {
+    /// The exact pose as a label (same conventions as `labels.json`).
+    pub fn label(&self) -> Label {
+        Label {
+            filename: self.filename.clone(),
+            q_vbs2tango: self.q_vbs2tango_true,
+            r_vo2to_vbs: self.r_vo2to_vbs_true,
+        }
+    }
+}
+
+impl Truth {
+    pub fn read(path: &Path) -> Result<Truth> {
+        let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+        let truth: Truth = serde_json::from_str(&text)
+            .map_err(|e| HostError::invalid(path, format!("malformed truth file: {e}")))?;
+        for (index, frame) in truth.frames.iter().enumerate() {
+            if frame.label().pose().is_none() {
+                return Err(HostError::field(
+                    path,
+                    format!("frames[{index}].q_vbs2tango_true"),
+                    "zero or non-finite pose",
+                ));
+            }
+        }
+        Ok(truth)
+    }
+
+    pub fn write(&self, path: &Path) -> Result<()> {
+        write_json(path, self)
+    }
+}
+
+/// Choices made while loading.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// Width to resample the images to (the height keeps the aspect ratio); `None` keeps the
+    /// stored size. Resampling area-averages, so downsizing does not alias.
+    pub width: Option<u32>,
+    /// SHIRT image domain inside a `roeN` folder: `synthetic` (the default) or `lightbox`.
+    pub domain: Option<String>,
+}
+
+/// A loaded SPEED+ / SHIRT set.
+#[derive(Clone, Debug)]
+pub struct SpeedPlusSet {
+    /// Frames with pinhole intrinsics (images are undistorted when `camera.json` has
+    /// distortion), pose labels, masks when the folder has them, RGB8 pixels (grayscale
+    /// expanded to r = g = b), black background.
+    pub dataset: Dataset,
+    /// The labels as read, in frame order.
+    pub labels: Vec<Label>,
+    /// The simulator's exact poses, sun directions and exposures, when `truth.json` is present.
+    pub truth: Option<Truth>,
+    /// The camera file as read (the stored image size, before any resampling).
+    pub camera: SpeedCamera,
+    pub label_file: PathBuf,
+}
+
+/// Load a SPEED+ / SHIRT / simulator set from a label file or a folder (see the module docs).
+pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
+    let label_file = find_label_file(path)?;
+    let label_dir = label_file.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let camera_file = find_upwards(&label_dir, "camera.json").ok_or_else(|| {
+        HostError::invalid(
+            label_dir.join("camera.json"),
+            "camera file not found here or in the two parent folders",
+        )
+    })?;
+    let camera = SpeedCamera::read(&camera_file)?;
+    let labels = read_labels(&label_file)?;
+    let images_dir = find_images_dir(&label_dir, options)?;
+    let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
+    let truth_file = label_dir.join("truth.json");
+    let truth = if truth_file.is_file() {
+        Some(Truth::read(&truth_file)?)
+    } else {
+        None
+    };
+
+    let resampler = Resampler::new(&camera, options.width);
+    let frames = labels
+        .par_iter()
+        .enumerate()
+        .map(|(index, label)| {
+            let pose = label.pose().ok_or_else(|| {
+                HostError::field(
+                    &label_file,
+                    format!("[{index}].q_vbs2tango_true"),
+                    "not a valid pose",
+                )
+            })?;
+            let image_path = images_dir.join(&label.filename);
+            let pixels =
+                resampler.rgb(&image_path, &read_image(&image_path, &camera)?.to_rgb8())?;
+            let mask = match &masks_dir {
+                Some(dir) => {
+                    let mask_path = dir.join(Path::new(&label.filename).with_extension("png"));
+                    let mask = read_image(&mask_path, &camera)?.to_luma8();
+                    Some(resampler.mask(&mask_path, &mask)?)
+                }
+                None => None,
+            };
+            Ok(Frame {
+                name: label.filename.clone(),
+                camera: resampler.output,
+                pose,
+                pixels,
+                mask,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+
+    let (scene_min, scene_max) = match &truth {
+        Some(truth) => (truth.target_box_min, truth.target_box_max),
+        None => TANGO_SCENE_BOX,
+    };
+    Ok(SpeedPlusSet {
+        dataset: Dataset {
+            source: path.to_path_buf(),
+            frames,
+            scene_min,
+            scene_max,
+            background: [0.0; 3],
+        },
+        labels,
+        truth,
+        camera,
+        label_file,
+    })
+}
+
+fn find_label_file(path: &Path) -> Result<PathBuf> {
+    if path.is_file() {
+        return Ok(path.to_path_buf());
+    }
+    if !path.is_dir() {
+        return Err(HostError::io(
+            path,
+            std::io::Error::from(std::io::ErrorKind::NotFound),
+        ));
+    }
+    let folder_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let candidates = [
+        "labels.json".to_owned(),
+        format!("{folder_name}.json"),
+        "train.json".into(),
+        "test.json".into(),
+    ];
+    candidates
+        .iter()
+        .map(|name| path.join(name))
+        .find(|candidate| candidate.is_file())
+        .ok_or_else(|| {
+            HostError::invalid(
+                path,
+                format!("no label file here (looked for {})", candidates.join(", ")),
+            )
+        })
+}
+
+fn find_upwards(start: &Path, name: &str) -> Option<PathBuf> {
+    start
+        .ancestors()
+        .take(3)
+        .map(|dir| dir.join(name))
+        .find(|candidate| candidate.is_file())
+}
+
+fn find_images_dir(label_dir: &Path, options: &LoadOptions) -> Result<PathBuf> {
+    let domain = options.domain.as_deref().unwrap_or("synthetic");
+    let candidates = [
+        label_dir.join("images"),
+        label_dir.join(domain).join("images"),
+    ];
+    candidates
+        .iter()
+        .find(|dir| dir.is_dir())
+        .cloned()
+        .ok_or_else(|| {
+            HostError::invalid(
+                label_dir,
+                format!("no image folder (looked for images/ and {domain}/images/)"),
+            )
+        })
+}
+
+fn read_image(path: &Path, camera: &SpeedCamera) -> Result<image::DynamicImage> {
+    let bytes = std::fs::read(path).map_err(|e| HostError::io(path, e))?;
+    let image = image::load_from_memory(&bytes)
+        .map_err(|e| HostError::invalid(path, format!("cannot decode image: {e}")))?;
+    if (image.width(), image.height()) != (camera.width, camera.height) {
+        return Err(HostError::invalid(
+            path,
+            format!(
+                "image is {}x{} but camera.json says {}x{}",
+                image.width(),
+                image.height(),
+                camera.width,
+                camera.height
+            ),
+        ));
+    }
+    Ok(image)
+}
+
+/// Maps stored images (possibly distorted, any size) to pinhole images of the requested size.
+struct Resampler {
+    source: SpeedCamera,
+    source_pinhole: Camera,
+    output: Camera,
+    /// Sub-samples per output pixel along each axis (area averaging when downsizing).
+    subsamples: u32,
+}
+
+impl Resampler {
+    fn new(source: &SpeedCamera, width: Option<u32>) -> Resampler {
+        let source_pinhole = source.pinhole();
+        let out_width = width.unwrap_or(source.width).clamp(1, u16::MAX as u32);
+        let scale_x = out_width as f32 / source.width as f32;
+        let out_height =
+            ((source.height as f32 * scale_x).round() as u32).clamp(1, u16::MAX as u32);
+        let scale_y = out_height as f32 / source.height as f32;
+        let output = Camera {
+            width: out_width as u16,
+            height: out_height as u16,
+            fx: source_pinhole.fx * scale_x,
+            fy: source_pinhole.fy * scale_y,
+            cx: source_pinhole.cx * scale_x,
+            cy: source_pinhole.cy * scale_y,
+        };
+        let subsamples = (1.0 / scale_x.min(scale_y)).ceil().clamp(1.0, 16.0) as u32;
+        Resampler {
+            source: source.clone(),
+            source_pinhole,
+            output,
+            subsamples,
+        }
+    }
+
+    fn is_identity(&self) -> bool {
+        self.output == self.source_pinhole && !self.source.has_distortion()
+    }
+
+    fn rgb(&self, path: &Path, image: &image::RgbImage) -> Result<Vec<u8>> {
+        if self.is_identity() {
+            return Ok(image.as_raw().clone());
+        }
+        self.resample(path, image.as_raw(), 3)
+    }
+
+    /// Masks are resampled like images and thresholded back to 0 / 255.
+    fn mask(&self, path: &Path, image: &image::GrayImage) -> Result<Vec<u8>> {
+        if self.is_identity() {
+            return Ok(image.as_raw().clone());
+        }
+        let mut mask = self.resample(path, image.as_raw(), 1)?;
+        mask.iter_mut()
+            .for_each(|v| *v = if *v >= 128 { 255 } else { 0 });
+        Ok(mask)
+    }
+
+    fn resample(&self, path: &Path, source: &[u8], channels: usize) -> Result<Vec<u8>> {
+        let (sw, sh) = (self.source.width as usize, self.source.height as usize);
+        if source.len() != sw * sh * channels {
+            return Err(HostError::invalid(
+                path,
+                "pixel buffer does not match the image size",
+            ));
+        }
+        let out = &self.output;
+        let src = &self.source_pinhole;
+        let n = self.subsamples;
+        let weight = 1.0 / (n * n) as f32;
+        let mut pixels = vec![0u8; out.pixel_count() * channels];
+        for (index, pixel) in pixels.chunks_exact_mut(channels).enumerate() {
+            let (i, j) = (
+                (index % out.width as usize) as f32,
+                (index / out.width as usize) as f32,
+            );
+            let mut sum = [0.0f32; 3];
+            for sy in 0..n {
+                for sx in 0..n {
+                    let u = i + (sx as f32 + 0.5) / n as f32;
+                    let v = j + (sy as f32 + 0.5) / n as f32;
+                    let (x, y) = self
+                        .source
+                        .distort((u - out.cx) / out.fx, (v - out.cy) / out.fy);
+                    let value = bilinear(
+                        source,
+                        sw,
+                        sh,
+                        channels,
+                        src.fx * x + src.cx - 0.5,
+                        src.fy * y + src.cy - 0.5,
+                    );
+                    for c in 0..channels {
+                        sum[c] += value[c];
+                    }
+                }
+            }
+            for c in 0..channels {
+                pixel[c] = (sum[c] * weight).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        Ok(pixels)
+    }
+}
+
+/// Bilinear sample at continuous pixel-index coordinates (pixel `i` covers `[i - 0.5, i + 0.5]`);
+/// points off the image are black, points on it near the border repeat the edge pixels.
+fn bilinear(
+    source: &[u8],
+    width: usize,
+    height: usize,
+    channels: usize,
+    x: f32,
+    y: f32,
+) -> [f32; 3] {
+    let mut out = [0.0; 3];
+    if !(x >= -0.5 && y >= -0.5 && x <= width as f32 - 0.5 && y <= height as f32 - 0.5) {
+        return out;
+    }
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    for (dy, wy) in [(0, 1.0 - fy), (1, fy)] {
+        for (dx, wx) in [(0, 1.0 - fx), (1, fx)] {
+            let px = (x0 as i64 + dx).clamp(0, width as i64 - 1) as usize;
+            let py = (y0 as i64 + dy).clamp(0, height as i64 - 1) as usize;
+            let base = (py * width + px) * channels;
+            for c in 0..channels {
+                out[c] += wx * wy * source[base + c] as f32;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small camera with the real SPEED+ distortion, 1920x1200 scaled to 64x40.
+    fn small_camera(distortion: bool) -> SpeedCamera {
+        let scale = 64.0 / 1920.0;
+        SpeedCamera {
+            width: 64,
+            height: 40,
+            ppx: 5.86e-6 / scale,
+            ppy: 5.86e-6 / scale,
+            fx: 0.017513,
+            fy: 0.017512,
+            ccx: 32.0,
+            ccy: 20.0,
+            camera_matrix: [
+                [2988.58 * scale, 0.0, 32.0],
+                [0.0, 2988.34 * scale, 20.0],
+                [0.0, 0.0, 1.0],
+            ],
+            dist_coeffs: if distortion {
+                [-0.2238, 0.5141, -0.000665, -0.000214, -0.1312]
+            } else {
+                [0.0; 5]
+            },
+        }
+    }
+
+    fn write_gray_jpeg(path: &Path, value: u8) {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        let image =
+            image::GrayImage::from_fn(64, 40, |x, _| image::Luma([value.saturating_add(x as u8)]));
+        image
+            .save_with_format(path, image::ImageFormat::Jpeg)
+            .unwrap();
+    }
+
+    fn label_json(key_q: &str, key_r: &str, q: [f64; 4], r: [f64; 3]) -> String {
+        format!(r#"[{{"filename": "img000001.jpg", "{key_q}": {q:?}, "{key_r}": {r:?}}}]"#)
+    }
+
+    const Q: [f64; 4] = [0.5, 0.5, -0.5, 0.5];
+    const R: [f64; 3] = [0.1, -0.2, 6.0];
+
+    #[test]
+    fn real_speedplus_and_shirt_layouts_load_with_both_quaternion_keys() {
+        let root = tempfile::tempdir().unwrap();
+        let root = root.path();
+        small_camera(false)
+            .write(&root.join("camera.json"))
+            .unwrap();
+        // SPEED (2019) keys in synthetic/train.json, SPEED+ keys in lightbox/test.json.
+        std::fs::create_dir_all(root.join("synthetic")).unwrap();
+        std::fs::write(
+            root.join("synthetic/train.json"),
+            label_json("q_vbs2tango", "r_Vo2To_vbs_true", Q, R),
+        )
+        .unwrap();
+        write_gray_jpeg(&root.join("synthetic/images/img000001.jpg"), 40);
+        std::fs::create_dir_all(root.join("lightbox")).unwrap();
+        std::fs::write(
+            root.join("lightbox/test.json"),
+            label_json("q_vbs2tango_true", "r_Vo2To_vbs_true", Q, R),
+        )
+        .unwrap();
+        write_gray_jpeg(&root.join("lightbox/images/img000001.jpg"), 90);
+        // SHIRT: roe2/roe2.json with one image folder per domain.
+        std::fs::create_dir_all(root.join("roe2")).unwrap();
+        std::fs::write(
+            root.join("roe2/roe2.json"),
+            label_json("q_vbs2tango_true", "r_Vo2To_vbs", Q, R),
+        )
+        .unwrap();
+        write_gray_jpeg(&root.join("roe2/synthetic/images/img000001.jpg"), 10);
+        write_gray_jpeg(&root.join("roe2/lightbox/images/img000001.jpg"), 150);
+
+        let expected_pose = Label {
+            filename: "img000001.jpg".into(),
+            q_vbs2tango: Q,
+            r_vo2to_vbs: R,
+        }
+        .pose()
+        .unwrap();
+        let cases = [
+            (root.join("synthetic/train.json"), None, 40),
+            (root.join("synthetic"), None, 40),
+            (root.join("lightbox"), None, 90),
+            (root.join("roe2"), None, 10),
+            (root.join("roe2"), Some("lightbox".to_owned()), 150),
+        ];
+        for (path, domain, first_value) in cases {
+            let set = load(
+                &path,
+                &LoadOptions {
+                    width: None,
+                    domain,
+                },
+            )
+            .unwrap();
+            let frame = &set.dataset.frames[0];
+            assert_eq!(frame.pose, expected_pose, "{}", path.display());
+            assert_eq!((frame.camera.width, frame.camera.height), (64, 40));
+            assert!(
+                frame
+                    .pixels
+                    .chunks_exact(3)
+                    .all(|p| p[0] == p[1] && p[1] == p[2]),
+                "gray expanded to RGB"
+            );
+            assert!(
+                (frame.pixels[0] as i32 - first_value).abs() <= 3,
+                "{} first pixel {}",
+                path.display(),
+                frame.pixels[0]
+            );
+            assert!(frame.mask.is_none() && set.truth.is_none());
+            assert_eq!(
+                (set.dataset.scene_min, set.dataset.scene_max),
+                TANGO_SCENE_BOX
+            );
+        }
+    }
+
+    #[test]
+    fn loading_resizes_and_undistorts() {
+        let root = tempfile::tempdir().unwrap();
+        let root = root.path();
+        std::fs::write(
+            root.join("labels.json"),
+            label_json("q_vbs2tango_true", "r_Vo2To_vbs_true", Q, R),
+        )
+        .unwrap();
+        write_gray_jpeg(&root.join("images/img000001.jpg"), 60);
+        for distortion in [false, true] {
+            small_camera(distortion)
+                .write(&root.join("camera.json"))
+                .unwrap();
+            let set = load(
+                root,
+                &LoadOptions {
+                    width: Some(32),
+                    domain: None,
+                },
+            )
+            .unwrap();
+            let frame = &set.dataset.frames[0];
+            assert_eq!((frame.camera.width, frame.camera.height), (32, 20));
+            assert!((frame.camera.fx - 2988.58 * 64.0 / 1920.0 / 2.0).abs() < 1e-3);
+            assert_eq!(frame.pixels.len(), 32 * 20 * 3);
+            // The horizontal ramp survives resampling (and undistortion near the centre).
+            let row = 10 * 32 * 3;
+            assert!(
+                frame.pixels[row + 3 * 20] > frame.pixels[row + 3 * 12],
+                "distortion {distortion}"
+            );
+        }
+    }
+
+    #[test]
+    fn undistort_inverts_distort() {
+        let camera = small_camera(true);
+        for (x, y) in [(0.0, 0.0), (0.2, -0.1), (-0.3, 0.25), (0.32, 0.2)] {
+            let (xd, yd) = camera.distort(x, y);
+            let (xu, yu) = camera.undistort(xd, yd);
+            assert!(
+                (xu - x).abs() < 1e-5 && (yu - y).abs() < 1e-5,
+                "({x}, {y}) -> ({xu}, {yu})"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_labels_name_the_file_and_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("train.json");
+        let cases = [
+            (
+                label_json("q_vbs2tango_true", "r_Vo2To_vbs_true", [0.0; 4], R),
+                "[0].q_vbs2tango_true",
+            ),
+            (
+                label_json("q_vbs2tango", "r_Vo2To_vbs_true", [0.9, 0.0, 0.0, 0.0], R),
+                "[0].q_vbs2tango",
+            ),
+            (
+                label_json("q_vbs2tango_true", "r_Vo2To_vbs_true", Q, [0.0; 3])
+                    .replace("[0.0, 0.0, 0.0]", "[0.0, 1e999, 0.0]"),
+                "",
+            ),
+            (
+                r#"[{"filename": "a.jpg", "q_vbs2tango_true": [1, 0, 0, 0]}]"#.to_owned(),
+                "[0].r_Vo2To_vbs_true",
+            ),
+            (
+                r#"[{"q_vbs2tango_true": [1, 0, 0, 0], "r_Vo2To_vbs_true": [0, 0, 1]}]"#.to_owned(),
+                "[0].filename",
+            ),
+        ];
+        for (text, expected_field) in cases {
+            std::fs::write(&path, &text).unwrap();
+            match read_labels(&path) {
+                Err(HostError::Field { file, field, .. }) => {
+                    assert_eq!(file, path);
+                    assert_eq!(field, expected_field, "{text}");
+                }
+                // JSON cannot hold 1e999: the parser rejects the file, naming it.
+                Err(HostError::Invalid { file, reason }) if expected_field.is_empty() => {
+                    assert_eq!(file, path);
+                    assert!(reason.contains("malformed JSON"), "{reason}");
+                }
+                other => panic!("{text}: {other:?}"),
+            }
+        }
+    }
+}
