@@ -163,13 +163,13 @@ impl SimulationReport {
         let _ = writeln!(
             table,
             "{:<14} {:<12} {:<4} {:>10} {:>10}",
-            "stage", "effect", "on", "total ms", "ms/frame"
+            "stage", "effect", "on", "total ms", "us/frame"
         );
         for stage in Stage::ALL {
             let total = self.times.get(stage).as_secs_f64() * 1e3;
             let _ = writeln!(
                 table,
-                "{:<14} {:<12} {:<4} {:>10.1} {:>10.3}",
+                "{:<14} {:<12} {:<4} {:>10.2} {:>10.1}",
                 stage.name(),
                 stage.effect().unwrap_or("(always)"),
                 if stage.runs_with(&self.effects) {
@@ -178,7 +178,7 @@ impl SimulationReport {
                     "no"
                 },
                 total,
-                total / self.frames.max(1) as f64,
+                1e3 * total / self.frames.max(1) as f64,
             );
         }
         let cpu: Duration = Stage::ALL.iter().map(|&s| self.times.get(s)).sum();
