@@ -24,13 +24,27 @@ pub enum HostError {
 
 impl HostError {
     pub fn io(file: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        HostError::Io { file: file.into(), source }
+        HostError::Io {
+            file: file.into(),
+            source,
+        }
     }
-    pub fn field(file: impl Into<PathBuf>, field: impl Into<String>, reason: impl Into<String>) -> Self {
-        HostError::Field { file: file.into(), field: field.into(), reason: reason.into() }
+    pub fn field(
+        file: impl Into<PathBuf>,
+        field: impl Into<String>,
+        reason: impl Into<String>,
+    ) -> Self {
+        HostError::Field {
+            file: file.into(),
+            field: field.into(),
+            reason: reason.into(),
+        }
     }
     pub fn invalid(file: impl Into<PathBuf>, reason: impl Into<String>) -> Self {
-        HostError::Invalid { file: file.into(), reason: reason.into() }
+        HostError::Invalid {
+            file: file.into(),
+            reason: reason.into(),
+        }
     }
 }
 

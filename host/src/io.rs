@@ -6,7 +6,10 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 fn temp_name(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
     name.push(format!(".tmp{}", std::process::id()));
     path.with_file_name(name)
 }
@@ -35,10 +38,18 @@ pub fn write_png(path: &Path, width: u32, height: u32, channels: u8, pixels: &[u
         1 => image::ExtendedColorType::L8,
         3 => image::ExtendedColorType::Rgb8,
         4 => image::ExtendedColorType::Rgba8,
-        _ => return Err(HostError::invalid(path, format!("cannot write a PNG with {channels} channels"))),
+        _ => {
+            return Err(HostError::invalid(
+                path,
+                format!("cannot write a PNG with {channels} channels"),
+            ));
+        }
     };
     if pixels.len() != width as usize * height as usize * channels as usize {
-        return Err(HostError::invalid(path, "pixel buffer does not match the image size"));
+        return Err(HostError::invalid(
+            path,
+            "pixel buffer does not match the image size",
+        ));
     }
     let mut encoded = Vec::new();
     image::codecs::png::PngEncoder::new(&mut encoded)

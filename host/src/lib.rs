@@ -1,12 +1,13 @@
 //! orbit-nerf-host: the std harness around the no_std core.
 
+pub mod checkpoint;
 pub mod dataset;
 pub mod error;
 pub mod io;
-pub mod sim;
-pub mod speedplus;
-pub mod checkpoint;
 pub mod metrics;
 pub mod nerf_formats;
+pub mod sim;
+pub mod speedplus;
+pub mod train;
 
 pub use error::{HostError, Result};

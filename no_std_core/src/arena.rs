@@ -14,7 +14,10 @@ impl<'a> Carver<'a> {
     pub fn new(arena: &'a mut [u8], needed: usize) -> Result<Self, Error> {
         let skip = arena.as_ptr().align_offset(PART_ALIGN);
         if arena.len() < needed || skip > arena.len() {
-            return Err(Error::ArenaTooSmall { needed, got: arena.len() });
+            return Err(Error::ArenaTooSmall {
+                needed,
+                got: arena.len(),
+            });
         }
         let (_, rest) = arena.split_at_mut(skip);
         Ok(Carver { rest, used: 0 })
@@ -30,7 +33,10 @@ impl<'a> Carver<'a> {
         let bytes = count * core::mem::size_of::<T>();
         let padded = bytes.div_ceil(PART_ALIGN) * PART_ALIGN;
         if padded > self.rest.len() {
-            return Err(Error::ArenaTooSmall { needed: self.used + padded, got: self.used + self.rest.len() });
+            return Err(Error::ArenaTooSmall {
+                needed: self.used + padded,
+                got: self.used + self.rest.len(),
+            });
         }
         let rest = core::mem::take(&mut self.rest);
         let (part, rest) = rest.split_at_mut(padded);

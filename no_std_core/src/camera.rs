@@ -52,12 +52,21 @@ pub struct Pose {
 #[cfg(feature = "defmt")]
 impl defmt::Format for Pose {
     fn format(&self, f: defmt::Formatter) {
-        defmt::write!(f, "Pose(center=[{}, {}, {}])", self.center.x, self.center.y, self.center.z)
+        defmt::write!(
+            f,
+            "Pose(center=[{}, {}, {}])",
+            self.center.x,
+            self.center.y,
+            self.center.z
+        )
     }
 }
 
 impl Pose {
-    pub const IDENTITY: Pose = Pose { rotation: Mat3::IDENTITY, center: Vec3::ZERO };
+    pub const IDENTITY: Pose = Pose {
+        rotation: Mat3::IDENTITY,
+        center: Vec3::ZERO,
+    };
 
     /// From a world-to-camera rotation quaternion and translation (`p_cam = q * p_world + t`),
     /// as in SPEED+ labels. Returns `None` for a zero or non-finite quaternion; the quaternion
@@ -70,7 +79,10 @@ impl Pose {
         let q = q * (1.0 / libm::sqrtf(n2));
         let r_w2c = Mat3::from_quat(q);
         let rotation = r_w2c.transpose();
-        Some(Pose { rotation, center: -(rotation * t) })
+        Some(Pose {
+            rotation,
+            center: -(rotation * t),
+        })
     }
 
     /// The inverse view: world-to-camera rotation and translation.

@@ -35,7 +35,7 @@ pub struct Config {
     pub scales: u8,
     /// Plane side length per scale, in texels (2..=1024).
     pub resolutions: [u16; MAX_SCALES],
-    /// Features per plane texel (per scale), a multiple of 8 up to 64.
+    /// Features per plane texel (per scale): 8, 16, 32 or 64.
     pub features: u16,
     /// Hidden width of the density MLP.
     pub density_hidden: u16,
@@ -60,7 +60,8 @@ pub struct Config {
     pub occupancy_res: u16,
     /// Refresh the occupancy grid every this many steps.
     pub occupancy_every: u32,
-    /// A cell stays occupied while its (decayed, max-pooled) density exceeds this.
+    /// A cell stays occupied while its (decayed, max-pooled) density times the marching step
+    /// (its opacity over one step) exceeds this.
     pub occupancy_threshold: f32,
     /// Per-refresh decay of the running density of each cell.
     pub occupancy_decay: f32,
@@ -119,7 +120,7 @@ impl Config {
         background: [1.0; 3],
         occupancy_res: 64,
         occupancy_every: 16,
-        occupancy_threshold: 0.1,
+        occupancy_threshold: 0.01,
         occupancy_decay: 0.95,
         march_steps: 512,
         max_samples_per_ray: 256,
@@ -129,7 +130,7 @@ impl Config {
         rays_per_batch: 4096,
         chunks: 8,
         samples_per_chunk: 16 * 1024,
-        steps: 5000,
+        steps: 3000,
         warmup_steps: 128,
         learning_rate: 0.01,
         final_lr_factor: 0.03,
@@ -194,7 +195,7 @@ impl Config {
                 return bad("resolutions");
             }
         }
-        if self.features == 0 || self.features % 8 != 0 || self.features > 64 {
+        if !matches!(self.features, 8 | 16 | 32 | 64) {
             return bad("features");
         }
         if !(1..=256).contains(&self.density_hidden) {
@@ -212,11 +213,16 @@ impl Config {
         if self.embedding_dim > 128 {
             return bad("embedding_dim");
         }
-        if !(self.init_low.is_finite() && self.init_high.is_finite() && self.init_low <= self.init_high) {
+        if !(self.init_low.is_finite()
+            && self.init_high.is_finite()
+            && self.init_low <= self.init_high)
+        {
             return bad("init_low");
         }
         for a in 0..3 {
-            if !(self.aabb_min[a].is_finite() && self.aabb_max[a].is_finite()) || self.aabb_max[a] <= self.aabb_min[a] {
+            if !(self.aabb_min[a].is_finite() && self.aabb_max[a].is_finite())
+                || self.aabb_max[a] <= self.aabb_min[a]
+            {
                 return bad("aabb");
             }
             if !(0.0..=1.0).contains(&self.background[a]) {
@@ -238,7 +244,8 @@ impl Config {
         if !(8..=8192).contains(&self.march_steps) {
             return bad("march_steps");
         }
-        if self.max_samples_per_ray == 0 || self.max_samples_per_ray as u32 > self.samples_per_chunk {
+        if self.max_samples_per_ray == 0 || self.max_samples_per_ray as u32 > self.samples_per_chunk
+        {
             return bad("max_samples_per_ray");
         }
         if !(self.min_transmittance.is_finite() && (0.0..1.0).contains(&self.min_transmittance)) {
@@ -253,7 +260,10 @@ impl Config {
         if self.chunks == 0 || self.chunks as usize > MAX_CHUNKS {
             return bad("chunks");
         }
-        if self.rays_per_batch == 0 || self.rays_per_batch % self.chunks as u32 != 0 || self.rays_per_batch > (1 << 24) {
+        if self.rays_per_batch == 0
+            || self.rays_per_batch % self.chunks as u32 != 0
+            || self.rays_per_batch > (1 << 24)
+        {
             return bad("rays_per_batch");
         }
         if (self.samples_per_chunk as usize) < LANES || self.samples_per_chunk > (1 << 26) {
@@ -265,7 +275,10 @@ impl Config {
         if self.warmup_steps > self.steps {
             return bad("warmup_steps");
         }
-        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0 && self.learning_rate <= 1.0) {
+        if !(self.learning_rate.is_finite()
+            && self.learning_rate > 0.0
+            && self.learning_rate <= 1.0)
+        {
             return bad("learning_rate");
         }
         if !(self.final_lr_factor.is_finite() && (0.0..=1.0).contains(&self.final_lr_factor)) {
@@ -319,13 +332,23 @@ impl MlpLayout {
             (c.colour_hidden as usize, c.colour_hidden as usize),
             (c.colour_hidden as usize, RGB),
         ];
-        let empty = Layer { inputs: 0, outputs: 0, weights: 0, biases: 0 };
+        let empty = Layer {
+            inputs: 0,
+            outputs: 0,
+            weights: 0,
+            biases: 0,
+        };
         let mut layers = [empty; 5];
         let mut at = 0;
         let mut i = 0;
         while i < 5 {
             let (inputs, outputs) = dims[i];
-            layers[i] = Layer { inputs, outputs, weights: at, biases: at + inputs * outputs };
+            layers[i] = Layer {
+                inputs,
+                outputs,
+                weights: at,
+                biases: at + inputs * outputs,
+            };
             at += inputs * outputs + outputs;
             i += 1;
         }
@@ -361,6 +384,18 @@ pub struct MemoryPlan {
 
 const fn align(n: usize) -> usize {
     n.div_ceil(PART_ALIGN) * PART_ALIGN
+}
+
+/// Widest layer output, rounded up to a multiple of 8 (the lane-major gradient scratch).
+pub const fn widest_layer(c: &Config) -> usize {
+    let mut w = c.density_hidden as usize;
+    if c.density_outputs() > w {
+        w = c.density_outputs();
+    }
+    if c.colour_hidden as usize > w {
+        w = c.colour_hidden as usize;
+    }
+    w.div_ceil(8) * 8
 }
 
 /// Floats of activation (or gradient) per lane in the MLP scratch.
@@ -403,7 +438,8 @@ impl MemoryPlan {
         let plane_moments = 2 * align(params * 4);
         let plane_grads = chunks * (align(params * 4) + align(bitmap)) + align(bitmap);
         let mlp_bytes = 3 * align(mlp * 4) + chunks * align(mlp * 4);
-        let occupancy = align(c.occupancy_cells().div_ceil(64) * 8) + align(c.occupancy_cells() * 4);
+        let occupancy =
+            align(c.occupancy_cells().div_ceil(64) * 8) + align(c.occupancy_cells() * 4);
         let frame_bytes = align(frames * c.max_pixels_per_frame as usize * 3)
             + align(frames * c.max_pixels_per_frame as usize)
             + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
@@ -414,7 +450,9 @@ impl MemoryPlan {
         let per_chunk = align(samples * sample_floats(c) * 4)
             + align(samples * 4)
             + align((chunk_rays + 1) * 4)
-            + align(2 * LANES * activation_floats(c) * 4);
+            + align(2 * LANES * activation_floats(c) * 4)
+            + align(LANES * 3 * c.density_inputs() * 4)
+            + align(LANES * widest_layer(c) * 4);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes
@@ -441,4 +479,3 @@ impl MemoryPlan {
         }
     }
 }
-

@@ -33,7 +33,12 @@ impl PlaneGeometry {
             first_texel[s] = at;
             at += 3 * r * r;
         }
-        PlaneGeometry { scales: c.scales as usize, features: c.features as usize, resolution, first_texel }
+        PlaneGeometry {
+            scales: c.scales as usize,
+            features: c.features as usize,
+            resolution,
+            first_texel,
+        }
     }
 }
 
@@ -60,50 +65,104 @@ fn footprint(first: usize, res: usize, a: f32, b: f32) -> Footprint {
     let t00 = first + y0 * res + x0;
     Footprint {
         texels: [t00, t00 + 1, t00 + res, t00 + res + 1],
-        weights: [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy],
+        weights: [
+            (1.0 - fx) * (1.0 - fy),
+            fx * (1.0 - fy),
+            (1.0 - fx) * fy,
+            fx * fy,
+        ],
         frac: [fx, fy],
     }
 }
 
-/// Up to 64 features of one texel, converted to f32.
+/// The `F` features of one texel as f32 (zeros if the index is out of range, which a
+/// footprint never produces).
 #[inline(always)]
-fn load_texel(planes: &[f16], texel: usize, features: usize, out: &mut [f32; 64]) {
-    use half::slice::HalfFloatSliceExt;
-    let start = texel * features;
-    if let Some(src) = planes.get(start..start + features) {
-        src.convert_to_f32_slice(&mut out[..features]);
+fn load_texel<const F: usize>(planes: &[f16], texel: usize) -> [f32; F] {
+    let mut out = [0.0f32; F];
+    let Some(src) = planes.get(texel * F..texel * F + F) else {
+        return out;
+    };
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "f16c",
+        target_feature = "avx"
+    ))]
+    {
+        use core::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
+        // F is a multiple of 8 (validated config). The conversion is exact, so this path
+        // gives the same bits as the portable one.
+        for i in (0..F).step_by(8) {
+            // SAFETY: `src` and `out` both hold F >= i + 8 values.
+            unsafe {
+                let v = _mm_loadu_si128(src.as_ptr().add(i) as *const __m128i);
+                _mm256_storeu_ps(out.as_mut_ptr().add(i), _mm256_cvtph_ps(v));
+            }
+        }
     }
+    #[cfg(not(all(
+        target_arch = "x86_64",
+        target_feature = "f16c",
+        target_feature = "avx"
+    )))]
+    for (o, h) in out.iter_mut().zip(src) {
+        *o = h.to_f32();
+    }
+    out
 }
 
-/// Bilinear value of one plane at (a, b) in [0,1]^2 for all features, and the four corner
-/// texels (kept for the backward pass).
 #[inline(always)]
-fn plane_value(planes: &[f16], fp: &Footprint, features: usize, corners: &mut [[f32; 64]; 4], out: &mut [f32; 64]) {
-    for (corner, &texel) in corners.iter_mut().zip(&fp.texels) {
-        load_texel(planes, texel, features, corner);
-    }
+fn bilinear<const F: usize>(planes: &[f16], fp: &Footprint) -> [f32; F] {
+    let c = fp.texels.map(|t| load_texel::<F>(planes, t));
     let [w0, w1, w2, w3] = fp.weights;
-    for f in 0..features {
-        out[f] = w0 * corners[0][f] + w1 * corners[1][f] + w2 * corners[2][f] + w3 * corners[3][f];
+    let mut out = [0.0f32; F];
+    for f in 0..F {
+        out[f] = w0 * c[0][f] + w1 * c[1][f] + w2 * c[2][f] + w3 * c[3][f];
     }
+    out
 }
 
 /// Plane features at normalised position `u` in [0,1]^3: for each scale, the product of the
-/// three planes' bilinear values; scales concatenated. `out` holds `scales * features` values.
-pub fn planes_forward(planes: &[f16], geo: &PlaneGeometry, u: [f32; 3], out: &mut [f32]) {
-    let f = geo.features;
-    let mut corners = [[0.0f32; 64]; 4];
-    let mut value = [0.0f32; 64];
+/// three planes' bilinear values; scales concatenated into `feats` (`scales * features`).
+/// The per-plane values go to `values` (`3 * scales * features`) for the backward pass.
+pub fn planes_forward(
+    planes: &[f16],
+    geo: &PlaneGeometry,
+    u: [f32; 3],
+    feats: &mut [f32],
+    values: &mut [f32],
+) {
+    match geo.features {
+        8 => planes_forward_n::<8>(planes, geo, u, feats, values),
+        16 => planes_forward_n::<16>(planes, geo, u, feats, values),
+        32 => planes_forward_n::<32>(planes, geo, u, feats, values),
+        _ => planes_forward_n::<64>(planes, geo, u, feats, values),
+    }
+}
+
+#[inline(always)]
+fn planes_forward_n<const F: usize>(
+    planes: &[f16],
+    geo: &PlaneGeometry,
+    u: [f32; 3],
+    feats: &mut [f32],
+    values: &mut [f32],
+) {
     for s in 0..geo.scales {
         let res = geo.resolution[s];
-        let feat = &mut out[s * f..(s + 1) * f];
-        feat.fill(1.0);
+        let mut product = [1.0f32; F];
         for (p, &(a, b)) in PLANE_AXES.iter().enumerate() {
             let fp = footprint(geo.first_texel[s] + p * res * res, res, u[a], u[b]);
-            plane_value(planes, &fp, f, &mut corners, &mut value);
-            for (x, v) in feat.iter_mut().zip(&value[..f]) {
-                *x *= v;
+            let v = bilinear::<F>(planes, &fp);
+            for f in 0..F {
+                product[f] *= v[f];
             }
+            if let Some(dst) = values.get_mut((3 * s + p) * F..(3 * s + p + 1) * F) {
+                dst.copy_from_slice(&v);
+            }
+        }
+        if let Some(dst) = feats.get_mut(s * F..(s + 1) * F) {
+            dst.copy_from_slice(&product);
         }
     }
 }
@@ -115,45 +174,66 @@ pub struct PlaneGrads<'a> {
     pub touched: &'a mut [u64],
 }
 
-/// Backward of `planes_forward`: accumulates `d_out` (d loss / d features) into the texel
-/// gradients, and returns d loss / d u (the spatial gradient, used by pose correction) when
-/// `want_spatial` is set (otherwise zeros).
+/// Backward of `planes_forward` given its per-plane `values`: accumulates `d_feats`
+/// (d loss / d features) into the texel gradients. With `want_spatial` it also returns
+/// d loss / d u (the spatial gradient, for pose correction; this reloads the texels),
+/// otherwise zeros.
 pub fn planes_backward(
     planes: &[f16],
     geo: &PlaneGeometry,
     u: [f32; 3],
-    d_out: &[f32],
+    values: &[f32],
+    d_feats: &[f32],
     sink: &mut PlaneGrads<'_>,
     want_spatial: bool,
 ) -> [f32; 3] {
-    let f = geo.features;
-    let mut corners = [[[0.0f32; 64]; 4]; 3];
-    let mut values = [[0.0f32; 64]; 3];
+    match geo.features {
+        8 => planes_backward_n::<8>(planes, geo, u, values, d_feats, sink, want_spatial),
+        16 => planes_backward_n::<16>(planes, geo, u, values, d_feats, sink, want_spatial),
+        32 => planes_backward_n::<32>(planes, geo, u, values, d_feats, sink, want_spatial),
+        _ => planes_backward_n::<64>(planes, geo, u, values, d_feats, sink, want_spatial),
+    }
+}
+
+#[inline(always)]
+fn planes_backward_n<const F: usize>(
+    planes: &[f16],
+    geo: &PlaneGeometry,
+    u: [f32; 3],
+    values: &[f32],
+    d_feats: &[f32],
+    sink: &mut PlaneGrads<'_>,
+    want_spatial: bool,
+) -> [f32; 3] {
     let mut spatial = [0.0f32; 3];
+    let row = |i: usize| -> [f32; F] {
+        values
+            .get(i * F..(i + 1) * F)
+            .and_then(|v| v.try_into().ok())
+            .unwrap_or([0.0; F])
+    };
     for s in 0..geo.scales {
         let res = geo.resolution[s];
-        let d_feat = &d_out[s * f..(s + 1) * f];
-        let mut fps = [footprint(0, 2, 0.0, 0.0); 3];
+        let d_feat: [f32; F] = d_feats
+            .get(s * F..(s + 1) * F)
+            .and_then(|v| v.try_into().ok())
+            .unwrap_or([0.0; F]);
+        let v = [row(3 * s), row(3 * s + 1), row(3 * s + 2)];
         for (p, &(a, b)) in PLANE_AXES.iter().enumerate() {
-            fps[p] = footprint(geo.first_texel[s] + p * res * res, res, u[a], u[b]);
-            plane_value(planes, &fps[p], f, &mut corners[p], &mut values[p]);
-        }
-        for p in 0..3 {
             let (q, r) = match p {
                 0 => (1, 2),
                 1 => (0, 2),
                 _ => (0, 1),
             };
             // d loss / d (this plane's value) = upstream * the other two planes' values.
-            let mut d_value = [0.0f32; 64];
-            for i in 0..f {
-                d_value[i] = d_feat[i] * values[q][i] * values[r][i];
+            let mut d_value = [0.0f32; F];
+            for i in 0..F {
+                d_value[i] = d_feat[i] * v[q][i] * v[r][i];
             }
-            let fp = &fps[p];
+            let fp = footprint(geo.first_texel[s] + p * res * res, res, u[a], u[b]);
             for (&texel, &w) in fp.texels.iter().zip(&fp.weights) {
-                let start = texel * f;
-                if let Some(g) = sink.grads.get_mut(start..start + f) {
-                    for (gi, dv) in g.iter_mut().zip(&d_value[..f]) {
+                if let Some(g) = sink.grads.get_mut(texel * F..texel * F + F) {
+                    for (gi, dv) in g.iter_mut().zip(&d_value) {
                         *gi += w * dv;
                     }
                 }
@@ -162,10 +242,10 @@ pub fn planes_backward(
                 }
             }
             if want_spatial {
+                let c = fp.texels.map(|t| load_texel::<F>(planes, t));
                 let [fx, fy] = fp.frac;
-                let c = &corners[p];
                 let (mut dx, mut dy) = (0.0f32, 0.0f32);
-                for i in 0..f {
+                for i in 0..F {
                     let ddx = (1.0 - fy) * (c[1][i] - c[0][i]) + fy * (c[3][i] - c[2][i]);
                     let ddy = (1.0 - fx) * (c[2][i] - c[0][i]) + fx * (c[3][i] - c[1][i]);
                     dx += d_value[i] * ddx;
@@ -173,7 +253,6 @@ pub fn planes_backward(
                 }
                 // Inside the clamp the texel coordinate is u * (res - 1); outside it is flat.
                 let scale = (res - 1) as f32;
-                let (a, b) = PLANE_AXES[p];
                 if (0.0..=1.0).contains(&u[a]) {
                     spatial[a] += dx * scale;
                 }
@@ -188,8 +267,22 @@ pub fn planes_backward(
 
 const SH_C0: f32 = 0.282_094_8;
 const SH_C1: f32 = 0.488_602_5;
-const SH_C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
-const SH_C3: [f32; 7] = [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_34, -0.457_045_8, 1.445_305_7, -0.590_043_6];
+const SH_C2: [f32; 5] = [
+    1.092_548_4,
+    -1.092_548_4,
+    0.315_391_57,
+    -1.092_548_4,
+    0.546_274_2,
+];
+const SH_C3: [f32; 7] = [
+    -0.590_043_6,
+    2.890_611_4,
+    -0.457_045_8,
+    0.373_176_34,
+    -0.457_045_8,
+    1.445_305_7,
+    -0.590_043_6,
+];
 
 /// Real spherical harmonics of direction `d` (unit length expected), `degree²` values.
 pub fn sh_forward(degree: usize, d: [f32; 3], out: &mut [f32]) {
@@ -288,16 +381,29 @@ pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
 /// Backward of `layer_forward`: accumulates d w and d b from `dy`, and (if `dx` is given)
 /// writes d x. Lanes whose `dy` is zero contribute nothing, which is how partial
 /// mini-batches are masked.
-pub fn layer_backward(w: &[f32], x: &[Row], dy: &[Row], dx: Option<&mut [Row]>, dw: &mut [f32], db: &mut [f32]) {
+pub fn layer_backward(
+    w: &[f32],
+    x: &[Row],
+    dy: &[Row],
+    dx: Option<&mut [Row]>,
+    dw: &mut [f32],
+    db: &mut [f32],
+    dy_lane_major: &mut [f32],
+) {
     let outputs = dy.len();
-    for (n, dyn_) in dy.iter().enumerate() {
-        db[n] += lane_sum(dyn_);
-    }
-    for (k, xk) in x.iter().enumerate() {
-        let dwk = &mut dw[k * outputs..(k + 1) * outputs];
-        for (n, dyn_) in dy.iter().enumerate() {
-            dwk[n] += lane_dot(xk, dyn_);
+    // Transpose dy to lane-major rows padded to a multiple of 8, so the weight gradient is a
+    // sum of outer products with accumulators held in registers (no horizontal sums).
+    let stride = outputs.div_ceil(8) * 8;
+    let dyt = &mut dy_lane_major[..LANES * stride];
+    for l in 0..LANES {
+        let row = &mut dyt[l * stride..(l + 1) * stride];
+        for (n, v) in row.iter_mut().enumerate() {
+            *v = dy.get(n).map_or(0.0, |d| d[l]);
         }
+    }
+    accumulate_outer(&ONES, dyt, stride, db);
+    for (k, xk) in x.iter().enumerate() {
+        accumulate_outer(xk, dyt, stride, &mut dw[k * outputs..(k + 1) * outputs]);
     }
     if let Some(dx) = dx {
         for (k, dxk) in dx.iter_mut().enumerate() {
@@ -314,28 +420,41 @@ pub fn layer_backward(w: &[f32], x: &[Row], dy: &[Row], dx: Option<&mut [Row]>, 
     }
 }
 
-/// Sum of a row in a fixed order: eight interleaved partial sums (so the loop vectorises
-/// without reassociation), then a fixed tree.
-#[inline(always)]
-fn lane_sum(a: &Row) -> f32 {
-    let mut s = [0.0f32; 8];
-    for c in a.chunks_exact(8) {
-        for j in 0..8 {
-            s[j] += c[j];
-        }
-    }
-    ((s[0] + s[4]) + (s[1] + s[5])) + ((s[2] + s[6]) + (s[3] + s[7]))
-}
+const ONES: Row = [1.0; LANES];
 
+/// `dst[n] += sum_l coef[l] * dyt[l * stride + n]` for `n < dst.len()`, summed over the
+/// lanes in order, 32 (then 8) columns at a time.
 #[inline(always)]
-fn lane_dot(a: &Row, b: &Row) -> f32 {
-    let mut s = [0.0f32; 8];
-    for (ca, cb) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
-        for j in 0..8 {
-            s[j] += ca[j] * cb[j];
+fn accumulate_outer(coef: &Row, dyt: &[f32], stride: usize, dst: &mut [f32]) {
+    let mut col = 0;
+    while col + 32 <= stride {
+        let mut acc = [0.0f32; 32];
+        for l in 0..LANES {
+            let s = coef[l];
+            let d = &dyt[l * stride + col..l * stride + col + 32];
+            for j in 0..32 {
+                acc[j] += s * d[j];
+            }
         }
+        for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
+            *o += a;
+        }
+        col += 32;
     }
-    ((s[0] + s[4]) + (s[1] + s[5])) + ((s[2] + s[6]) + (s[3] + s[7]))
+    while col < stride {
+        let mut acc = [0.0f32; 8];
+        for l in 0..LANES {
+            let s = coef[l];
+            let d = &dyt[l * stride + col..l * stride + col + 8];
+            for j in 0..8 {
+                acc[j] += s * d[j];
+            }
+        }
+        for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
+            *o += a;
+        }
+        col += 8;
+    }
 }
 
 pub fn relu_forward(y: &mut [Row]) {
@@ -408,7 +527,10 @@ mod tests {
     /// Relative agreement of an analytic and a central-difference derivative.
     fn assert_close(analytic: f32, numeric: f32, tol: f32, what: &str) {
         let scale = analytic.abs().max(numeric.abs()).max(1e-2);
-        assert!((analytic - numeric).abs() / scale < tol, "{what}: analytic {analytic} vs numeric {numeric}");
+        assert!(
+            (analytic - numeric).abs() / scale < tol,
+            "{what}: analytic {analytic} vs numeric {numeric}"
+        );
     }
 
     #[test]
@@ -424,17 +546,23 @@ mod tests {
         }
         let loss = |planes: &[f16], u: [f32; 3]| {
             let mut out = [0.0f32; 16];
-            planes_forward(planes, &geo, u, &mut out[..n]);
+            planes_forward(planes, &geo, u, &mut out[..n], &mut [0.0; 48]);
             (0..n).map(|i| (out[i] * d_out[i]) as f64).sum::<f64>()
         };
         let mut grads = [0.0f32; 4096];
         let mut touched = [0u64; 8];
+        let mut values = [0.0f32; 48];
+        planes_forward(&planes, &geo, u, &mut [0.0; 16], &mut values);
         let spatial = planes_backward(
             &planes,
             &geo,
             u,
+            &values,
             &d_out[..n],
-            &mut PlaneGrads { grads: &mut grads, touched: &mut touched },
+            &mut PlaneGrads {
+                grads: &mut grads,
+                touched: &mut touched,
+            },
             true,
         );
         // Texel gradients: perturb in f32 through a shadow copy (the lookup is linear in
@@ -474,9 +602,16 @@ mod tests {
         let (geo, texels) = small_geometry();
         let planes = random_planes(&geo, texels, 3);
         let mut out = [0.0f32; 16];
-        for u in [[-5.0, 2.0, 0.5], [f32::NAN, 0.5, f32::INFINITY], [1.0, 1.0, 1.0]] {
-            planes_forward(&planes, &geo, u, &mut out);
-            assert!(out.iter().all(|v| v.is_finite() || u.iter().any(|x| x.is_nan())));
+        for u in [
+            [-5.0, 2.0, 0.5],
+            [f32::NAN, 0.5, f32::INFINITY],
+            [1.0, 1.0, 1.0],
+        ] {
+            planes_forward(&planes, &geo, u, &mut out, &mut [0.0; 48]);
+            assert!(
+                out.iter()
+                    .all(|v| v.is_finite() || u.iter().any(|x| x.is_nan()))
+            );
         }
     }
 
@@ -526,15 +661,26 @@ mod tests {
         let mut b = [0.0f32; N];
         let mut x = [[0.0f32; LANES]; K];
         let mut upstream = [[0.0f32; LANES]; N];
-        w.iter_mut().chain(b.iter_mut()).for_each(|v| *v = rng.uniform() - 0.5);
-        x.iter_mut().flatten().for_each(|v| *v = rng.uniform() - 0.5);
-        upstream.iter_mut().flatten().for_each(|v| *v = rng.uniform() - 0.5);
+        w.iter_mut()
+            .chain(b.iter_mut())
+            .for_each(|v| *v = rng.uniform() - 0.5);
+        x.iter_mut()
+            .flatten()
+            .for_each(|v| *v = rng.uniform() - 0.5);
+        upstream
+            .iter_mut()
+            .flatten()
+            .for_each(|v| *v = rng.uniform() - 0.5);
         // Loss = sum over lanes of upstream * relu(layer(x)).
         let loss = |w: &[f32], b: &[f32], x: &[Row]| {
             let mut y = [[0.0f32; LANES]; N];
             layer_forward(w, b, x, &mut y);
             relu_forward(&mut y);
-            y.iter().zip(&upstream).flat_map(|(a, u)| a.iter().zip(u)).map(|(a, u)| (a * u) as f64).sum::<f64>()
+            y.iter()
+                .zip(&upstream)
+                .flat_map(|(a, u)| a.iter().zip(u))
+                .map(|(a, u)| (a * u) as f64)
+                .sum::<f64>()
         };
         let mut y = [[0.0f32; LANES]; N];
         layer_forward(&w, &b, &x, &mut y);
@@ -542,7 +688,15 @@ mod tests {
         let mut dy = upstream;
         relu_backward(&y, &mut dy);
         let (mut dw, mut db, mut dx) = ([0.0f32; K * N], [0.0f32; N], [[0.0f32; LANES]; K]);
-        layer_backward(&w, &x, &dy, Some(&mut dx), &mut dw, &mut db);
+        layer_backward(
+            &w,
+            &x,
+            &dy,
+            Some(&mut dx),
+            &mut dw,
+            &mut db,
+            &mut [0.0; LANES * 8],
+        );
         let h = 1e-3f32;
         for i in 0..K * N {
             let (mut p, mut m) = (w, w);

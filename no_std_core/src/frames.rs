@@ -25,10 +25,20 @@ pub struct FrameMeta {
 
 impl FrameMeta {
     pub fn camera(&self) -> Camera {
-        Camera { width: self.width as u16, height: self.height as u16, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy }
+        Camera {
+            width: self.width as u16,
+            height: self.height as u16,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+        }
     }
     pub fn pose(&self) -> Pose {
-        Pose { rotation: Mat3::from_cols_array(&self.rotation), center: Vec3::from_array(self.center) }
+        Pose {
+            rotation: Mat3::from_cols_array(&self.rotation),
+            center: Vec3::from_array(self.center),
+        }
     }
 }
 
@@ -85,7 +95,14 @@ impl<'a> FrameStore<'a> {
 
     /// Put a frame into `slot`, replacing what was there. The input is checked first; on error
     /// the slot is unchanged.
-    pub fn set(&mut self, slot: usize, camera: Camera, pose: Pose, pixels: &[u8], mask: Option<&[u8]>) -> Result<(), Error> {
+    pub fn set(
+        &mut self,
+        slot: usize,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<(), Error> {
         if slot >= self.capacity() {
             return Err(Error::InvalidFrame { field: "slot" });
         }
@@ -94,7 +111,10 @@ impl<'a> FrameStore<'a> {
         }
         let n = camera.pixel_count();
         if n > self.max_pixels {
-            return Err(Error::FrameTooLarge { pixels: n, capacity: self.max_pixels });
+            return Err(Error::FrameTooLarge {
+                pixels: n,
+                capacity: self.max_pixels,
+            });
         }
         if pixels.len() != n * 3 {
             return Err(Error::InvalidFrame { field: "pixels" });
@@ -106,9 +126,14 @@ impl<'a> FrameStore<'a> {
             return Err(Error::InvalidFrame { field: "pose" });
         }
         let rtr = pose.rotation.transpose() * pose.rotation;
-        let off = (rtr - Mat3::IDENTITY).to_cols_array().iter().fold(0.0f32, |a, v| a.max(v.abs()));
+        let off = (rtr - Mat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |a, v| a.max(v.abs()));
         if !(off < ORTHONORMAL_TOLERANCE) || pose.rotation.determinant() < 0.0 {
-            return Err(Error::InvalidFrame { field: "pose.rotation" });
+            return Err(Error::InvalidFrame {
+                field: "pose.rotation",
+            });
         }
         let base = slot * self.max_pixels;
         self.pixels[base * 3..base * 3 + n * 3].copy_from_slice(pixels);

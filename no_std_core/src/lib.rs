@@ -35,24 +35,48 @@ pub enum Error {
     /// Training needs at least one frame.
     NoFrames,
     /// A caller buffer has the wrong length.
-    BufferSize { what: &'static str, expected: usize, got: usize },
+    BufferSize {
+        what: &'static str,
+        expected: usize,
+        got: usize,
+    },
     /// A checkpoint section is unknown or has the wrong size.
-    BadSection { name: &'static str, expected: usize, got: usize },
+    BadSection {
+        name: &'static str,
+        expected: usize,
+        got: usize,
+    },
 }
 
 impl core::fmt::Display for Error {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match *self {
             Error::InvalidConfig { field } => write!(f, "invalid config field `{field}`"),
-            Error::ArenaTooSmall { needed, got } => write!(f, "arena too small: {needed} bytes needed, {got} given"),
+            Error::ArenaTooSmall { needed, got } => {
+                write!(f, "arena too small: {needed} bytes needed, {got} given")
+            }
             Error::InvalidFrame { field } => write!(f, "invalid frame: `{field}`"),
             Error::FrameTooLarge { pixels, capacity } => {
-                write!(f, "frame has {pixels} pixels but a slot holds {capacity} (max_pixels_per_frame)")
+                write!(
+                    f,
+                    "frame has {pixels} pixels but a slot holds {capacity} (max_pixels_per_frame)"
+                )
             }
             Error::NoFrames => write!(f, "no frames to train on"),
-            Error::BufferSize { what, expected, got } => write!(f, "`{what}` has length {got}, expected {expected}"),
-            Error::BadSection { name, expected, got } => {
-                write!(f, "checkpoint section `{name}` has {got} bytes, expected {expected}")
+            Error::BufferSize {
+                what,
+                expected,
+                got,
+            } => write!(f, "`{what}` has length {got}, expected {expected}"),
+            Error::BadSection {
+                name,
+                expected,
+                got,
+            } => {
+                write!(
+                    f,
+                    "checkpoint section `{name}` has {got} bytes, expected {expected}"
+                )
             }
         }
     }

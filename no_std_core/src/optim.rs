@@ -56,7 +56,12 @@ impl AdamStep {
 
     /// Dense update of `params` from `grads`.
     pub fn apply(&self, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
-        for (((p, g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
+        for (((p, g), m), v) in params
+            .iter_mut()
+            .zip(grads)
+            .zip(m.iter_mut())
+            .zip(v.iter_mut())
+        {
             *p += self.delta(*g, m, v);
         }
     }
@@ -72,18 +77,41 @@ pub fn stochastic_round(x: f32, bits: u64) -> f16 {
     }
     // The f16 neighbour on the other side of x: one unit in the last place toward x.
     let raw = nearest.to_bits();
-    let toward_x = if (y < x) == (raw & 0x8000 == 0) { raw.wrapping_add(1) } else { raw.wrapping_sub(1) };
+    let toward_x = if (y < x) == (raw & 0x8000 == 0) {
+        raw.wrapping_add(1)
+    } else {
+        raw.wrapping_sub(1)
+    };
     // Crossing zero from +0 goes to the smallest negative subnormal.
-    let other = if raw & 0x7fff == 0 { f16::from_bits(if x > 0.0 { 1 } else { 0x8001 }) } else { f16::from_bits(toward_x) };
+    let other = if raw & 0x7fff == 0 {
+        f16::from_bits(if x > 0.0 { 1 } else { 0x8001 })
+    } else {
+        f16::from_bits(toward_x)
+    };
     let z = other.to_f32();
-    let (lo, hi, lo_h, hi_h) = if y < z { (y, z, nearest, other) } else { (z, y, other, nearest) };
+    let (lo, hi, lo_h, hi_h) = if y < z {
+        (y, z, nearest, other)
+    } else {
+        (z, y, other, nearest)
+    };
     let p_hi = (x - lo) / (hi - lo);
-    if rng::unit_f32(bits) < p_hi { hi_h } else { lo_h }
+    if rng::unit_f32(bits) < p_hi {
+        hi_h
+    } else {
+        lo_h
+    }
 }
 
 /// Writes one texel feature after an update, following the configured policy.
 #[inline(always)]
-pub fn store_texel(texel: &mut f16, master: Option<&mut f32>, delta: f32, seed: u64, step: u32, index: usize) {
+pub fn store_texel(
+    texel: &mut f16,
+    master: Option<&mut f32>,
+    delta: f32,
+    seed: u64,
+    step: u32,
+    index: usize,
+) {
     match master {
         Some(m) => {
             *m += delta;

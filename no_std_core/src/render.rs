@@ -25,7 +25,10 @@ impl Aabb {
                 continue;
             }
             let inv = 1.0 / d;
-            let (mut near, mut far) = ((self.min[a] - origin[a]) * inv, (self.max[a] - origin[a]) * inv);
+            let (mut near, mut far) = (
+                (self.min[a] - origin[a]) * inv,
+                (self.max[a] - origin[a]) * inv,
+            );
             if near > far {
                 core::mem::swap(&mut near, &mut far);
             }
@@ -33,7 +36,11 @@ impl Aabb {
             t1 = t1.min(far);
         }
         // Comparisons with NaN are false, so a NaN ray is rejected here too.
-        if t0 < t1 && t1.is_finite() { Some((t0, t1)) } else { None }
+        if t0 < t1 && t1.is_finite() {
+            Some((t0, t1))
+        } else {
+            None
+        }
     }
 
     /// Position mapped to [0,1]^3 over the box.
@@ -67,7 +74,9 @@ impl OccupancyView<'_> {
     #[inline]
     fn occupied(&self, c: [usize; 3]) -> bool {
         let i = (c[2] * self.res + c[1]) * self.res + c[0];
-        self.bits.get(i / 64).is_some_and(|w| w >> (i % 64) & 1 == 1)
+        self.bits
+            .get(i / 64)
+            .is_some_and(|w| w >> (i % 64) & 1 == 1)
     }
 
     /// Distance along the ray at which it leaves cell `c`.
@@ -143,7 +152,12 @@ pub fn kept_samples(sigma: &[f32], step: f32, min_transmittance: f32) -> usize {
 
 /// Composite samples front to back onto `background`. Returns the colour and the final
 /// transmittance.
-pub fn composite_forward(sigma: &[f32], rgb: &[[f32; 3]], step: f32, background: [f32; 3]) -> ([f32; 3], f32) {
+pub fn composite_forward(
+    sigma: &[f32],
+    rgb: &[[f32; 3]],
+    step: f32,
+    background: [f32; 3],
+) -> ([f32; 3], f32) {
     let mut transmittance = 1.0f32;
     let mut colour = [0.0f32; 3];
     for (s, c) in sigma.iter().zip(rgb) {
@@ -215,14 +229,26 @@ mod tests {
         let (colour, _) = composite_forward(&sigma, &rgb, step, bg);
         let mut d_sigma = [0.0f32; 7];
         let mut d_rgb = [[0.0f32; 3]; 7];
-        composite_backward(&sigma, &rgb, step, colour, d_colour, &mut d_sigma, &mut d_rgb);
+        composite_backward(
+            &sigma,
+            &rgb,
+            step,
+            colour,
+            d_colour,
+            &mut d_sigma,
+            &mut d_rgb,
+        );
         let h = 1e-2f32;
         for i in 0..n {
             let (mut p, mut m) = (sigma, sigma);
             p[i] += h;
             m[i] -= h;
             let numeric = ((loss(&p, &rgb) - loss(&m, &rgb)) / (2.0 * h as f64)) as f32;
-            assert!((d_sigma[i] - numeric).abs() < 1e-3 + 1e-2 * numeric.abs(), "sigma {i}: {} vs {numeric}", d_sigma[i]);
+            assert!(
+                (d_sigma[i] - numeric).abs() < 1e-3 + 1e-2 * numeric.abs(),
+                "sigma {i}: {} vs {numeric}",
+                d_sigma[i]
+            );
             for ch in 0..3 {
                 let (mut p, mut m) = (rgb, rgb);
                 p[i][ch] += h;
@@ -245,7 +271,10 @@ mod tests {
 
     #[test]
     fn clipping_handles_axis_aligned_nan_and_missing_rays() {
-        let aabb = Aabb { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) };
+        let aabb = Aabb {
+            min: Vec3::splat(-1.0),
+            max: Vec3::splat(1.0),
+        };
         let (t0, t1) = aabb.clip(Vec3::new(0.0, 0.0, -3.0), Vec3::Z).unwrap();
         assert!((t0 - 2.0).abs() < 1e-6 && (t1 - 4.0).abs() < 1e-6);
         assert!(aabb.clip(Vec3::new(2.0, 0.0, -3.0), Vec3::Z).is_none());
@@ -256,11 +285,18 @@ mod tests {
 
     #[test]
     fn marching_skips_empty_cells_and_stays_on_the_lattice() {
-        let aabb = Aabb { min: Vec3::splat(0.0), max: Vec3::splat(4.0) };
+        let aabb = Aabb {
+            min: Vec3::splat(0.0),
+            max: Vec3::splat(4.0),
+        };
         // 4^3 cells; only cell (2, 0, 0) is occupied.
         let mut bits = [0u64; 1];
         bits[0] |= 1 << 2;
-        let occ = OccupancyView { bits: &bits, res: 4, aabb };
+        let occ = OccupancyView {
+            bits: &bits,
+            res: 4,
+            aabb,
+        };
         let origin = Vec3::new(-1.0, 0.5, 0.5);
         let mut ts = [0.0f32; 64];
         let mut n = 0;
@@ -277,6 +313,12 @@ mod tests {
         }
         // Capacity: emit refuses after two samples.
         let mut m = 0;
-        assert_eq!(march(&occ, origin, Vec3::X, 0.25, 0.5, 64, |_| { m += 1; m <= 2 }), 2);
+        assert_eq!(
+            march(&occ, origin, Vec3::X, 0.25, 0.5, 64, |_| {
+                m += 1;
+                m <= 2
+            }),
+            2
+        );
     }
 }

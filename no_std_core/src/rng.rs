@@ -72,7 +72,10 @@ mod tests {
             assert!((0.0..1.0).contains(&u));
             bins[(u * 10.0) as usize] += 1;
         }
-        assert!(bins.iter().all(|&b| (9_000..11_000).contains(&b)), "{bins:?}");
+        assert!(
+            bins.iter().all(|&b| (9_000..11_000).contains(&b)),
+            "{bins:?}"
+        );
         for n in [1, 3, 1000] {
             assert!((0..1000).all(|i| below(hash(1, 2, i, 0), n) < n));
         }

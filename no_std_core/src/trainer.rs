@@ -4,8 +4,9 @@
 
 use crate::arena::Carver;
 use crate::config::{
-    COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES, MAX_CHUNKS,
-    MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats, sample_floats,
+    COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
+    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats, sample_floats,
+    widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore};
@@ -39,7 +40,10 @@ pub struct StepReport {
     /// Mean squared error per channel over the rays that were rendered.
     pub mse: f32,
     pub rays: u32,
+    /// Samples that reached the colour MLP and the backward pass (before the early stop).
     pub samples: u32,
+    /// Samples marched through occupied space (all get a density evaluation).
+    pub samples_marched: u32,
     /// Rays dropped because their chunk's sample capacity ran out.
     pub dropped_rays: u32,
     /// True if the loss or a gradient was not finite and the update was skipped.
@@ -106,7 +110,15 @@ fn split_rows<'r>(c: &Config, rows: &'r mut [Row]) -> Rows<'r> {
     let (colour_in, rest) = rest.split_at_mut(c.colour_inputs());
     let (colour1, rest) = rest.split_at_mut(c.colour_hidden as usize);
     let (colour2, rgb) = rest.split_at_mut(c.colour_hidden as usize);
-    Rows { feats, hidden, density_out, colour_in, colour1, colour2, rgb }
+    Rows {
+        feats,
+        hidden,
+        density_out,
+        colour_in,
+        colour1,
+        colour2,
+        rgb,
+    }
 }
 
 /// One chunk's private buffers.
@@ -125,6 +137,11 @@ pub struct Chunk<'a> {
     ray_start: &'a mut [u32],
     activations: &'a mut [Row],
     gradients: &'a mut [Row],
+    /// Per-plane bilinear values of each lane's sample (lane-major), kept from the
+    /// recomputed forward pass for the plane backward pass.
+    plane_values: &'a mut [f32],
+    /// Output gradients of one layer in lane-major order (the weight-gradient kernel's input).
+    lane_major: &'a mut [f32],
     /// First ray of the batch this chunk works on, and how many.
     first_ray: usize,
     ray_count: usize,
@@ -136,6 +153,7 @@ struct ChunkReport {
     squared_error: f32,
     rays: u32,
     samples: u32,
+    marched: u32,
     dropped: u32,
 }
 
@@ -191,13 +209,18 @@ impl<'a> Trainer<'a> {
 
         let planes = carver.take::<f16>(params)?;
         tally(&carver, &mut used.planes);
-        let master_len = if c.texel_update == TexelUpdate::MasterCopy { params } else { 0 };
+        let master_len = if c.texel_update == TexelUpdate::MasterCopy {
+            params
+        } else {
+            0
+        };
         let plane_master = carver.take::<f32>(master_len)?;
         tally(&carver, &mut used.plane_master);
         let plane_m = carver.take::<f32>(params)?;
         let plane_v = carver.take::<f32>(params)?;
         tally(&carver, &mut used.plane_moments);
-        let mut plane_grad_parts: heapless::Vec<(&mut [f32], &mut [u64]), MAX_CHUNKS> = heapless::Vec::new();
+        let mut plane_grad_parts: heapless::Vec<(&mut [f32], &mut [u64]), MAX_CHUNKS> =
+            heapless::Vec::new();
         for _ in 0..chunks {
             let g = carver.take::<f32>(params)?;
             let t = carver.take::<u64>(words)?;
@@ -234,8 +257,10 @@ impl<'a> Trainer<'a> {
         let mut chunk_list = heapless::Vec::new();
         let rows = activation_floats(c);
         let geo_len = c.geo_features as usize;
-        for (i, ((plane_grads, touched), (mlp_grads, frame_grads))) in
-            plane_grad_parts.into_iter().zip(mlp_grad_parts.into_iter().zip(frame_grad_parts)).enumerate()
+        for (i, ((plane_grads, touched), (mlp_grads, frame_grads))) in plane_grad_parts
+            .into_iter()
+            .zip(mlp_grad_parts.into_iter().zip(frame_grad_parts))
+            .enumerate()
         {
             let block = carver.take::<f32>(samples * sample_floats(c))?;
             let (positions, block) = block.split_at_mut(3 * samples);
@@ -247,6 +272,8 @@ impl<'a> Trainer<'a> {
             let ray_start = carver.take::<u32>(chunk_rays + 1)?;
             let act = carver.take::<Row>(2 * rows)?;
             let (activations, gradients) = act.split_at_mut(rows);
+            let plane_values = carver.take::<f32>(LANES * 3 * c.density_inputs())?;
+            let lane_major = carver.take::<f32>(LANES * widest_layer(c))?;
             let chunk = Chunk {
                 plane_grads,
                 touched,
@@ -262,6 +289,8 @@ impl<'a> Trainer<'a> {
                 ray_start,
                 activations,
                 gradients,
+                plane_values,
+                lane_major,
                 first_ray: i * chunk_rays,
                 ray_count: chunk_rays,
                 report: ChunkReport::default(),
@@ -273,7 +302,10 @@ impl<'a> Trainer<'a> {
         tally(&carver, &mut used.samples);
         used.total = carver.used();
 
-        let aabb = Aabb { min: Vec3::from_array(c.aabb_min), max: Vec3::from_array(c.aabb_max) };
+        let aabb = Aabb {
+            min: Vec3::from_array(c.aabb_min),
+            max: Vec3::from_array(c.aabb_max),
+        };
         let mut trainer = Trainer {
             config,
             geometry: PlaneGeometry::new(&config),
@@ -290,7 +322,14 @@ impl<'a> Trainer<'a> {
             mlp_v,
             occupancy_bits,
             occupancy_density,
-            frames: FrameStore { meta, pixels, masks, occupied, len: 0, max_pixels: c.max_pixels_per_frame as usize },
+            frames: FrameStore {
+                meta,
+                pixels,
+                masks,
+                occupied,
+                len: 0,
+                max_pixels: c.max_pixels_per_frame as usize,
+            },
             frame_params: frame_param_slice,
             frame_m,
             frame_v,
@@ -351,6 +390,92 @@ impl<'a> Trainer<'a> {
         self.mlp
     }
 
+    /// The whole training state as named byte sections (for checkpoints): parameters,
+    /// optimizer moments, occupancy, frames and counters.
+    pub fn sections(&self) -> [(&'static str, &[u8]); 16] {
+        use bytemuck::cast_slice as bytes;
+        [
+            ("state", bytemuck::bytes_of(&self.state)),
+            ("planes", bytes(self.planes)),
+            ("plane_master", bytes(self.plane_master)),
+            ("plane_m", bytes(self.plane_m)),
+            ("plane_v", bytes(self.plane_v)),
+            ("mlp", bytes(self.mlp)),
+            ("mlp_m", bytes(self.mlp_m)),
+            ("mlp_v", bytes(self.mlp_v)),
+            ("occupancy_bits", bytes(self.occupancy_bits)),
+            ("occupancy_density", bytes(self.occupancy_density)),
+            ("frame_meta", bytes(self.frames.meta)),
+            ("frame_pixels", self.frames.pixels),
+            ("frame_masks", self.frames.masks),
+            ("frame_params", bytes(self.frame_params)),
+            ("frame_m", bytes(self.frame_m)),
+            ("frame_v", bytes(self.frame_v)),
+        ]
+    }
+
+    /// Restore one section written by `sections` for the same config. The size must match.
+    pub fn restore_section(&mut self, name: &str, data: &[u8]) -> Result<(), Error> {
+        use bytemuck::cast_slice_mut as bytes;
+        let (name, target): (&'static str, &mut [u8]) = match name {
+            "state" => ("state", bytemuck::bytes_of_mut(&mut self.state)),
+            "planes" => ("planes", bytes(self.planes)),
+            "plane_master" => ("plane_master", bytes(self.plane_master)),
+            "plane_m" => ("plane_m", bytes(self.plane_m)),
+            "plane_v" => ("plane_v", bytes(self.plane_v)),
+            "mlp" => ("mlp", bytes(self.mlp)),
+            "mlp_m" => ("mlp_m", bytes(self.mlp_m)),
+            "mlp_v" => ("mlp_v", bytes(self.mlp_v)),
+            "occupancy_bits" => ("occupancy_bits", bytes(self.occupancy_bits)),
+            "occupancy_density" => ("occupancy_density", bytes(self.occupancy_density)),
+            "frame_meta" => ("frame_meta", bytes(self.frames.meta)),
+            "frame_pixels" => ("frame_pixels", &mut *self.frames.pixels),
+            "frame_masks" => ("frame_masks", &mut *self.frames.masks),
+            "frame_params" => ("frame_params", bytes(self.frame_params)),
+            "frame_m" => ("frame_m", bytes(self.frame_m)),
+            "frame_v" => ("frame_v", bytes(self.frame_v)),
+            _ => {
+                return Err(Error::BadSection {
+                    name: "unknown",
+                    expected: 0,
+                    got: data.len(),
+                });
+            }
+        };
+        if target.len() != data.len() {
+            return Err(Error::BadSection {
+                name,
+                expected: target.len(),
+                got: data.len(),
+            });
+        }
+        if name == "frame_meta" {
+            // Slot sizes index the pixel store: reject any that would not fit.
+            let size = core::mem::size_of::<FrameMeta>();
+            for raw in data.chunks_exact(size) {
+                let meta: FrameMeta = bytemuck::pod_read_unaligned(raw);
+                let pixels = meta.width as usize * meta.height as usize;
+                if meta.occupied != 0
+                    && (!meta.camera().is_valid()
+                        || pixels > self.frames.max_pixels
+                        || meta.width > u16::MAX as u32
+                        || meta.height > u16::MAX as u32)
+                {
+                    return Err(Error::BadSection {
+                        name,
+                        expected: 0,
+                        got: data.len(),
+                    });
+                }
+            }
+        }
+        target.copy_from_slice(data);
+        if name == "frame_meta" {
+            self.frames.rebuild_occupied();
+        }
+        Ok(())
+    }
+
     /// Fraction of occupancy cells marked occupied.
     pub fn occupancy_fraction(&self) -> f32 {
         let ones: u32 = self.occupancy_bits.iter().map(|w| w.count_ones()).sum();
@@ -363,16 +488,40 @@ impl<'a> Trainer<'a> {
         self.frame_params.get(slot * n..(slot + 1) * n)
     }
 
+    /// Mean appearance embedding of the occupied frames (zeros without frames).
+    pub fn mean_embedding(&self, out: &mut [f32]) {
+        let n = self.config.frame_params();
+        out.fill(0.0);
+        let count = self.frames.len();
+        for i in 0..count {
+            let Some(slot) = self.frames.occupied_slot(i) else {
+                continue;
+            };
+            for (o, v) in out.iter_mut().zip(&self.frame_params[slot * n..]) {
+                *o += v / count as f32;
+            }
+        }
+    }
+
     /// Put a frame into `slot`. Its embedding starts at the mean of the other frames'
     /// embeddings, its pose correction at zero, and its optimizer moments are cleared.
-    pub fn set_frame(&mut self, slot: usize, camera: Camera, pose: Pose, pixels: &[u8], mask: Option<&[u8]>) -> Result<(), Error> {
+    pub fn set_frame(
+        &mut self,
+        slot: usize,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<(), Error> {
         self.frames.set(slot, camera, pose, pixels, mask)?;
         let n = self.config.frame_params();
         let dim = self.config.embedding_dim as usize;
         let mut mean = [0.0f32; 128];
         let mut others = 0;
         for i in 0..self.frames.len() {
-            let Some(s) = self.frames.occupied_slot(i).filter(|&s| s != slot) else { continue };
+            let Some(s) = self.frames.occupied_slot(i).filter(|&s| s != slot) else {
+                continue;
+            };
             for (m, v) in mean.iter_mut().zip(&self.frame_params[s * n..s * n + dim]) {
                 *m += v;
             }
@@ -410,13 +559,20 @@ impl<'a> Trainer<'a> {
         let step = self.state.step as u64;
         for r in 0..c.rays_per_batch as usize {
             let bits = rng::hash(c.seed, stream::RAY_PICK, step, r as u64);
-            let slot = self.frames.occupied_slot(rng::below(bits, count) as usize).unwrap_or(0);
+            let slot = self
+                .frames
+                .occupied_slot(rng::below(bits, count) as usize)
+                .unwrap_or(0);
             let meta = self.frames.meta[slot];
             let camera = meta.camera();
-            let pixel = rng::below(rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 1 << 40), camera.pixel_count() as u32);
+            let pixel = rng::below(
+                rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 1 << 40),
+                camera.pixel_count() as u32,
+            );
             let (i, j) = (pixel % meta.width, pixel / meta.width);
             let (o, d) = Self::pixel_ray(&camera, &meta.pose(), i, j);
-            let px = &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
+            let px =
+                &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
             let ray = &mut self.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
             ray[..3].copy_from_slice(&o.to_array());
             ray[3..6].copy_from_slice(&d.to_array());
@@ -440,7 +596,11 @@ impl<'a> Trainer<'a> {
             step_size: self.step_size,
             planes: self.planes,
             mlp: self.mlp,
-            occupancy: OccupancyView { bits: self.occupancy_bits, res: self.config.occupancy_res as usize, aabb: self.aabb },
+            occupancy: OccupancyView {
+                bits: self.occupancy_bits,
+                res: self.config.occupancy_res as usize,
+                aabb: self.aabb,
+            },
             rays: self.rays,
             ray_frames: self.ray_frames,
             embedding: Embedding::PerFrame(self.frame_params),
@@ -473,9 +633,14 @@ impl<'a> Trainer<'a> {
             squared_error += chunk.report.squared_error;
             report.rays += chunk.report.rays;
             report.samples += chunk.report.samples;
+            report.samples_marched += chunk.report.marched;
             report.dropped_rays += chunk.report.dropped;
         }
-        report.mse = if report.rays > 0 { squared_error / (3 * report.rays) as f32 } else { 0.0 };
+        report.mse = if report.rays > 0 {
+            squared_error / (3 * report.rays) as f32
+        } else {
+            0.0
+        };
         let mut finite = squared_error.is_finite();
 
         for other in rest.iter_mut() {
@@ -483,12 +648,20 @@ impl<'a> Trainer<'a> {
                 *a += *b;
                 *b = 0.0;
             }
-            for (a, b) in first.frame_grads.iter_mut().zip(other.frame_grads.iter_mut()) {
+            for (a, b) in first
+                .frame_grads
+                .iter_mut()
+                .zip(other.frame_grads.iter_mut())
+            {
                 *a += *b;
                 *b = 0.0;
             }
         }
-        finite &= first.mlp_grads.iter().chain(first.frame_grads.iter()).all(|g| g.is_finite());
+        finite &= first
+            .mlp_grads
+            .iter()
+            .chain(first.frame_grads.iter())
+            .all(|g| g.is_finite());
         let f = self.config.features as usize;
         for (w, union) in self.touched_union.iter_mut().enumerate() {
             let mut bits = first.touched[w];
@@ -503,7 +676,10 @@ impl<'a> Trainer<'a> {
                 bits &= bits - 1;
                 let range = texel * f..(texel + 1) * f;
                 for other in rest.iter_mut() {
-                    for (a, b) in first.plane_grads[range.clone()].iter_mut().zip(&mut other.plane_grads[range.clone()]) {
+                    for (a, b) in first.plane_grads[range.clone()]
+                        .iter_mut()
+                        .zip(&mut other.plane_grads[range.clone()])
+                    {
                         *a += *b;
                         *b = 0.0;
                     }
@@ -522,12 +698,24 @@ impl<'a> Trainer<'a> {
             let dim = c.embedding_dim as usize;
             let pose_adam = AdamStep::new(c, lr * c.pose_lr_factor, self.state.updates);
             for i in 0..self.frames.len() {
-                let Some(slot) = self.frames.occupied_slot(i) else { continue };
+                let Some(slot) = self.frames.occupied_slot(i) else {
+                    continue;
+                };
                 let range = slot * n..(slot + 1) * n;
                 let (emb, pose) = (range.start..range.start + dim, range.start + dim..range.end);
-                adam.apply(&mut self.frame_params[emb.clone()], &first.frame_grads[emb.clone()], &mut self.frame_m[emb.clone()], &mut self.frame_v[emb]);
+                adam.apply(
+                    &mut self.frame_params[emb.clone()],
+                    &first.frame_grads[emb.clone()],
+                    &mut self.frame_m[emb.clone()],
+                    &mut self.frame_v[emb],
+                );
                 if c.pose_correction {
-                    pose_adam.apply(&mut self.frame_params[pose.clone()], &first.frame_grads[pose.clone()], &mut self.frame_m[pose.clone()], &mut self.frame_v[pose]);
+                    pose_adam.apply(
+                        &mut self.frame_params[pose.clone()],
+                        &first.frame_grads[pose.clone()],
+                        &mut self.frame_m[pose.clone()],
+                        &mut self.frame_v[pose],
+                    );
                 }
             }
             let master = !self.plane_master.is_empty();
@@ -537,9 +725,24 @@ impl<'a> Trainer<'a> {
                     let texel = w * 64 + bits.trailing_zeros() as usize;
                     bits &= bits - 1;
                     for i in texel * f..(texel + 1) * f {
-                        let delta = adam.delta(first.plane_grads[i], &mut self.plane_m[i], &mut self.plane_v[i]);
-                        let master = if master { self.plane_master.get_mut(i) } else { None };
-                        optim::store_texel(&mut self.planes[i], master, delta, c.seed, self.state.step, i);
+                        let delta = adam.delta(
+                            first.plane_grads[i],
+                            &mut self.plane_m[i],
+                            &mut self.plane_v[i],
+                        );
+                        let master = if master {
+                            self.plane_master.get_mut(i)
+                        } else {
+                            None
+                        };
+                        optim::store_texel(
+                            &mut self.planes[i],
+                            master,
+                            delta,
+                            c.seed,
+                            self.state.step,
+                            i,
+                        );
                     }
                 }
             }
@@ -561,7 +764,8 @@ impl<'a> Trainer<'a> {
     }
 
     /// Re-estimate every occupancy cell's density at a seeded point inside it, keep the
-    /// decayed maximum, and mark cells above the threshold as occupied.
+    /// decayed maximum, and mark cells whose opacity over one marching step exceeds the
+    /// threshold as occupied.
     pub fn refresh_occupancy<E: Executor>(&mut self, executor: &E) {
         let c = self.config;
         let shared = Shared {
@@ -572,7 +776,11 @@ impl<'a> Trainer<'a> {
             step_size: self.step_size,
             planes: self.planes,
             mlp: self.mlp,
-            occupancy: OccupancyView { bits: &[], res: c.occupancy_res as usize, aabb: self.aabb },
+            occupancy: OccupancyView {
+                bits: &[],
+                res: c.occupancy_res as usize,
+                aabb: self.aabb,
+            },
             rays: &[],
             ray_frames: &[],
             embedding: Embedding::Fixed(&[]),
@@ -581,16 +789,38 @@ impl<'a> Trainer<'a> {
         };
         let cells = c.occupancy_cells();
         let per_chunk = cells.div_ceil(self.chunks.len());
-        let mut jobs: heapless::Vec<(usize, &mut [f32], &mut Chunk<'a>), MAX_CHUNKS> = heapless::Vec::new();
-        for (i, (part, chunk)) in self.occupancy_density.chunks_mut(per_chunk).zip(self.chunks.iter_mut()).enumerate() {
+        let mut jobs: heapless::Vec<(usize, &mut [f32], &mut Chunk<'a>), MAX_CHUNKS> =
+            heapless::Vec::new();
+        for (i, (part, chunk)) in self
+            .occupancy_density
+            .chunks_mut(per_chunk)
+            .zip(self.chunks.iter_mut())
+            .enumerate()
+        {
             let _ = jobs.push((i * per_chunk, part, chunk));
         }
-        executor.for_each(&mut jobs, |(first_cell, part, chunk)| chunk.refresh_cells(&shared, *first_cell, part));
+        executor.for_each(&mut jobs, |(first_cell, part, chunk)| {
+            chunk.refresh_cells(&shared, *first_cell, part)
+        });
         drop(jobs);
+        // As in nerfacc, the threshold never exceeds the mean cell opacity, so a field whose
+        // densities are all still low (early training) is not culled to nothing.
+        let sum = self
+            .occupancy_density
+            .iter()
+            .fold(0.0f64, |a, d| a + *d as f64);
+        let mean = (sum / cells as f64) as f32 * self.step_size;
+        let threshold = c.occupancy_threshold.min(mean);
         for (w, word) in self.occupancy_bits.iter_mut().enumerate() {
             let mut bits = 0u64;
-            for (b, d) in self.occupancy_density.iter().skip(w * 64).take(64).enumerate() {
-                bits |= ((*d > c.occupancy_threshold) as u64) << b;
+            for (b, d) in self
+                .occupancy_density
+                .iter()
+                .skip(w * 64)
+                .take(64)
+                .enumerate()
+            {
+                bits |= ((*d * self.step_size > threshold) as u64) << b;
             }
             *word = bits;
         }
@@ -599,17 +829,32 @@ impl<'a> Trainer<'a> {
 
     /// Render the image of `camera` at `pose` with a given appearance embedding (length
     /// `embedding_dim`) into `out` (RGB f32, row-major). Returns the mean samples per ray.
-    pub fn render<E: Executor>(&mut self, executor: &E, camera: &Camera, pose: &Pose, embedding: &[f32], out: &mut [f32]) -> Result<f32, Error> {
+    pub fn render<E: Executor>(
+        &mut self,
+        executor: &E,
+        camera: &Camera,
+        pose: &Pose,
+        embedding: &[f32],
+        out: &mut [f32],
+    ) -> Result<f32, Error> {
         let c = self.config;
         if !camera.is_valid() || !pose.is_finite() {
             return Err(Error::InvalidFrame { field: "camera" });
         }
         if embedding.len() != c.embedding_dim as usize {
-            return Err(Error::BufferSize { what: "embedding", expected: c.embedding_dim as usize, got: embedding.len() });
+            return Err(Error::BufferSize {
+                what: "embedding",
+                expected: c.embedding_dim as usize,
+                got: embedding.len(),
+            });
         }
         let pixels = camera.pixel_count();
         if out.len() != pixels * 3 {
-            return Err(Error::BufferSize { what: "out", expected: pixels * 3, got: out.len() });
+            return Err(Error::BufferSize {
+                what: "out",
+                expected: pixels * 3,
+                got: out.len(),
+            });
         }
         let batch = c.rays_per_batch as usize;
         let mut samples = 0u64;
@@ -617,7 +862,12 @@ impl<'a> Trainer<'a> {
             let count = batch.min(pixels - first);
             for r in 0..count {
                 let p = (first + r) as u32;
-                let (o, d) = Self::pixel_ray(camera, pose, p % camera.width as u32, p / camera.width as u32);
+                let (o, d) = Self::pixel_ray(
+                    camera,
+                    pose,
+                    p % camera.width as u32,
+                    p / camera.width as u32,
+                );
                 self.rays[r * RAY_FLOATS..r * RAY_FLOATS + 3].copy_from_slice(&o.to_array());
                 self.rays[r * RAY_FLOATS + 3..r * RAY_FLOATS + 6].copy_from_slice(&d.to_array());
             }
@@ -634,7 +884,11 @@ impl<'a> Trainer<'a> {
                 step_size: self.step_size,
                 planes: self.planes,
                 mlp: self.mlp,
-                occupancy: OccupancyView { bits: self.occupancy_bits, res: c.occupancy_res as usize, aabb: self.aabb },
+                occupancy: OccupancyView {
+                    bits: self.occupancy_bits,
+                    res: c.occupancy_res as usize,
+                    aabb: self.aabb,
+                },
                 rays: self.rays,
                 ray_frames: self.ray_frames,
                 embedding: Embedding::Fixed(embedding),
@@ -642,7 +896,8 @@ impl<'a> Trainer<'a> {
                 jitter: false,
             };
             let out_batch = &mut out[first * 3..(first + count) * 3];
-            let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> = heapless::Vec::new();
+            let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> =
+                heapless::Vec::new();
             let mut rest = out_batch;
             for chunk in self.chunks.iter_mut() {
                 let (mine, tail) = rest.split_at_mut(chunk.ray_count * 3);
@@ -650,7 +905,10 @@ impl<'a> Trainer<'a> {
                 let _ = jobs.push((chunk, mine));
             }
             executor.for_each(&mut jobs, |(chunk, out)| chunk.render(&shared, out));
-            samples += jobs.iter().map(|(chunk, _)| chunk.report.samples as u64).sum::<u64>();
+            samples += jobs
+                .iter()
+                .map(|(chunk, _)| chunk.report.samples as u64)
+                .sum::<u64>();
         }
         Ok(samples as f32 / pixels as f32)
     }
@@ -659,7 +917,10 @@ impl<'a> Trainer<'a> {
 impl Chunk<'_> {
     fn ray(shared: &Shared<'_>, r: usize) -> (Vec3, Vec3) {
         let ray = &shared.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
-        (Vec3::new(ray[0], ray[1], ray[2]), Vec3::new(ray[3], ray[4], ray[5]))
+        (
+            Vec3::new(ray[0], ray[1], ray[2]),
+            Vec3::new(ray[3], ray[4], ray[5]),
+        )
     }
 
     /// March rays `first..end` of the batch into the sample buffers, as many as fit.
@@ -672,21 +933,34 @@ impl Chunk<'_> {
         for r in first..end {
             let (o, d) = Self::ray(shared, r);
             let jitter = if shared.jitter {
-                rng::unit_f32(rng::hash(c.seed, stream::RAY_JITTER, shared.step as u64, r as u64))
+                rng::unit_f32(rng::hash(
+                    c.seed,
+                    stream::RAY_JITTER,
+                    shared.step as u64,
+                    r as u64,
+                ))
             } else {
                 0.5
             };
             let mut full = false;
-            render::march(&shared.occupancy, o, d, shared.step_size, jitter, c.max_samples_per_ray as usize, |t| {
-                if n == capacity {
-                    full = true;
-                    return false;
-                }
-                self.positions[n] = (o + d * t).to_array();
-                self.sample_ray[n] = r as u32;
-                n += 1;
-                true
-            });
+            render::march(
+                &shared.occupancy,
+                o,
+                d,
+                shared.step_size,
+                jitter,
+                c.max_samples_per_ray as usize,
+                |t| {
+                    if n == capacity {
+                        full = true;
+                        return false;
+                    }
+                    self.positions[n] = (o + d * t).to_array();
+                    self.sample_ray[n] = r as u32;
+                    n += 1;
+                    true
+                },
+            );
             if full {
                 // Drop this ray's partial samples: the ray did not fit.
                 return r - first;
@@ -703,7 +977,12 @@ impl Chunk<'_> {
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let rows = split_rows(c, self.activations);
-            load_features(shared, &self.positions[base..base + lanes], rows.feats);
+            load_features(
+                shared,
+                &self.positions[base..base + lanes],
+                rows.feats,
+                self.plane_values,
+            );
             density_rows(shared, rows.feats, rows.hidden, rows.density_out);
             for l in 0..lanes {
                 self.sigma[base + l] = field::trunc_exp(rows.density_out[0][l]);
@@ -722,13 +1001,18 @@ impl Chunk<'_> {
         let mut write = 0usize;
         for r in 0..rays {
             let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
-            let kept = render::kept_samples(&self.sigma[start..end], shared.step_size, c.min_transmittance);
+            let kept = render::kept_samples(
+                &self.sigma[start..end],
+                shared.step_size,
+                c.min_transmittance,
+            );
             self.ray_start[r] = write as u32;
             if write != start {
                 self.positions.copy_within(start..start + kept, write);
                 self.sigma.copy_within(start..start + kept, write);
                 self.sample_ray.copy_within(start..start + kept, write);
-                self.geo.copy_within(start * geo_len..(start + kept) * geo_len, write * geo_len);
+                self.geo
+                    .copy_within(start * geo_len..(start + kept) * geo_len, write * geo_len);
             }
             write += kept;
         }
@@ -742,7 +1026,14 @@ impl Chunk<'_> {
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let rows = split_rows(c, self.activations);
-            Self::load_colour_inputs(self.sample_ray, self.geo, shared, base, lanes, rows.colour_in);
+            Self::load_colour_inputs(
+                self.sample_ray,
+                self.geo,
+                shared,
+                base,
+                lanes,
+                rows.colour_in,
+            );
             colour_rows(shared, rows.colour_in, rows.colour1, rows.colour2, rows.rgb);
             for l in 0..lanes {
                 self.rgb[base + l] = [rows.rgb[0][l], rows.rgb[1][l], rows.rgb[2][l]];
@@ -752,9 +1043,20 @@ impl Chunk<'_> {
 
     /// Colour-MLP inputs: view encoding, geometry features (stored by the density pass) and
     /// the appearance embedding. Unused lanes are zero.
-    fn load_colour_inputs(sample_ray: &[u32], geo: &[f32], shared: &Shared<'_>, base: usize, lanes: usize, colour_in: &mut [Row]) {
+    fn load_colour_inputs(
+        sample_ray: &[u32],
+        geo: &[f32],
+        shared: &Shared<'_>,
+        base: usize,
+        lanes: usize,
+        colour_in: &mut [Row],
+    ) {
         let c = shared.config;
-        let (sh_len, geo_len, dim) = (c.sh_values(), c.geo_features as usize, c.embedding_dim as usize);
+        let (sh_len, geo_len, dim) = (
+            c.sh_values(),
+            c.geo_features as usize,
+            c.embedding_dim as usize,
+        );
         for row in colour_in.iter_mut() {
             row.fill(0.0);
         }
@@ -794,7 +1096,12 @@ impl Chunk<'_> {
         let mut squared_error = 0.0f32;
         for r in 0..rays {
             let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
-            let (colour, _) = render::composite_forward(&self.sigma[start..end], &self.rgb[start..end], shared.step_size, c.background);
+            let (colour, _) = render::composite_forward(
+                &self.sigma[start..end],
+                &self.rgb[start..end],
+                shared.step_size,
+                c.background,
+            );
             let target = &shared.rays[(first + r) * RAY_FLOATS + 6..(first + r) * RAY_FLOATS + 9];
             let mut d_colour = [0.0f32; 3];
             for ch in 0..3 {
@@ -813,7 +1120,13 @@ impl Chunk<'_> {
             );
         }
         self.backward(shared, n);
-        self.report = ChunkReport { squared_error, rays: rays as u32, samples: n as u32, dropped: (self.ray_count - rays) as u32 };
+        self.report = ChunkReport {
+            squared_error,
+            rays: rays as u32,
+            samples: n as u32,
+            marched: marched as u32,
+            dropped: (self.ray_count - rays) as u32,
+        };
     }
 
     /// Recompute the field for samples `0..n` mini-batch by mini-batch and push the
@@ -821,16 +1134,32 @@ impl Chunk<'_> {
     fn backward(&mut self, shared: &Shared<'_>, n: usize) {
         let c = shared.config;
         let layout = shared.layout;
-        let (sh_len, geo_len, dim) = (c.sh_values(), c.geo_features as usize, c.embedding_dim as usize);
+        let (sh_len, geo_len, dim) = (
+            c.sh_values(),
+            c.geo_features as usize,
+            c.embedding_dim as usize,
+        );
         let features = c.density_inputs();
         let frame_params = c.frame_params();
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let act = split_rows(c, self.activations);
             let grad = split_rows(c, self.gradients);
-            load_features(shared, &self.positions[base..base + lanes], act.feats);
+            load_features(
+                shared,
+                &self.positions[base..base + lanes],
+                act.feats,
+                self.plane_values,
+            );
             density_rows(shared, act.feats, act.hidden, act.density_out);
-            Self::load_colour_inputs(self.sample_ray, self.geo, shared, base, lanes, act.colour_in);
+            Self::load_colour_inputs(
+                self.sample_ray,
+                self.geo,
+                shared,
+                base,
+                lanes,
+                act.colour_in,
+            );
             colour_rows(shared, act.colour_in, act.colour1, act.colour2, act.rgb);
 
             // Output gradients; unused lanes stay zero and so contribute nothing.
@@ -843,20 +1172,49 @@ impl Chunk<'_> {
                     grad.rgb[ch][l] = self.d_rgb[s][ch] * field::sigmoid_grad(act.rgb[ch][l]);
                 }
                 // d sigma / d raw = trunc_exp'(raw), which is sigma itself below the clamp.
-                grad.density_out[0][l] = self.d_sigma[s] * field::trunc_exp_grad(act.density_out[0][l]);
+                grad.density_out[0][l] =
+                    self.d_sigma[s] * field::trunc_exp_grad(act.density_out[0][l]);
             }
             let g = &mut *self.mlp_grads;
             let p = shared.mlp;
             let layer = |i: usize| layout.layers[i];
-            let (l_out, l2, l1) = (layer(COLOUR_OUT), layer(COLOUR_HIDDEN2), layer(COLOUR_HIDDEN1));
+            let (l_out, l2, l1) = (
+                layer(COLOUR_OUT),
+                layer(COLOUR_HIDDEN2),
+                layer(COLOUR_HIDDEN1),
+            );
             let (w, dw) = split_layer(p, g, l_out);
-            field::layer_backward(w, act.colour2, grad.rgb, Some(grad.colour2), dw.0, dw.1);
+            field::layer_backward(
+                w,
+                act.colour2,
+                grad.rgb,
+                Some(grad.colour2),
+                dw.0,
+                dw.1,
+                self.lane_major,
+            );
             field::relu_backward(act.colour2, grad.colour2);
             let (w, dw) = split_layer(p, g, l2);
-            field::layer_backward(w, act.colour1, grad.colour2, Some(grad.colour1), dw.0, dw.1);
+            field::layer_backward(
+                w,
+                act.colour1,
+                grad.colour2,
+                Some(grad.colour1),
+                dw.0,
+                dw.1,
+                self.lane_major,
+            );
             field::relu_backward(act.colour1, grad.colour1);
             let (w, dw) = split_layer(p, g, l1);
-            field::layer_backward(w, act.colour_in, grad.colour1, Some(grad.colour_in), dw.0, dw.1);
+            field::layer_backward(
+                w,
+                act.colour_in,
+                grad.colour1,
+                Some(grad.colour_in),
+                dw.0,
+                dw.1,
+                self.lane_major,
+            );
             for gi in 0..geo_len {
                 grad.density_out[1 + gi] = grad.colour_in[sh_len + gi];
             }
@@ -864,7 +1222,8 @@ impl Chunk<'_> {
                 if let Embedding::PerFrame(_) = shared.embedding {
                     for l in 0..lanes {
                         let slot = shared.ray_frames[self.sample_ray[base + l] as usize] as usize;
-                        let dst = &mut self.frame_grads[slot * frame_params..slot * frame_params + dim];
+                        let dst =
+                            &mut self.frame_grads[slot * frame_params..slot * frame_params + dim];
                         for (k, d) in dst.iter_mut().enumerate() {
                             *d += grad.colour_in[sh_len + geo_len + k][l];
                         }
@@ -872,19 +1231,49 @@ impl Chunk<'_> {
                 }
             }
             let (w, dw) = split_layer(p, g, layout.layers[DENSITY_OUT]);
-            field::layer_backward(w, act.hidden, grad.density_out, Some(grad.hidden), dw.0, dw.1);
+            field::layer_backward(
+                w,
+                act.hidden,
+                grad.density_out,
+                Some(grad.hidden),
+                dw.0,
+                dw.1,
+                self.lane_major,
+            );
             field::relu_backward(act.hidden, grad.hidden);
             let (w, dw) = split_layer(p, g, layout.layers[DENSITY_HIDDEN]);
-            field::layer_backward(w, act.feats, grad.hidden, Some(grad.feats), dw.0, dw.1);
+            field::layer_backward(
+                w,
+                act.feats,
+                grad.hidden,
+                Some(grad.feats),
+                dw.0,
+                dw.1,
+                self.lane_major,
+            );
 
-            let mut sink = PlaneGrads { grads: self.plane_grads, touched: self.touched };
+            let mut sink = PlaneGrads {
+                grads: self.plane_grads,
+                touched: self.touched,
+            };
             let mut d_feat = [0.0f32; 4 * 64];
             for l in 0..lanes {
                 for k in 0..features {
                     d_feat[k] = grad.feats[k][l];
                 }
-                let u = shared.aabb.normalise(Vec3::from_array(self.positions[base + l]));
-                field::planes_backward(shared.planes, shared.geometry, u, &d_feat[..features], &mut sink, false);
+                let u = shared
+                    .aabb
+                    .normalise(Vec3::from_array(self.positions[base + l]));
+                let values = &self.plane_values[l * 3 * features..(l + 1) * 3 * features];
+                field::planes_backward(
+                    shared.planes,
+                    shared.geometry,
+                    u,
+                    values,
+                    &d_feat[..features],
+                    &mut sink,
+                    false,
+                );
             }
         }
     }
@@ -905,7 +1294,12 @@ impl Chunk<'_> {
             self.colour_pass(shared, n);
             for r in 0..rays {
                 let (start, stop) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
-                let (colour, _) = render::composite_forward(&self.sigma[start..stop], &self.rgb[start..stop], shared.step_size, c.background);
+                let (colour, _) = render::composite_forward(
+                    &self.sigma[start..stop],
+                    &self.rgb[start..stop],
+                    shared.step_size,
+                    c.background,
+                );
                 let o = (first - self.first_ray + r) * 3;
                 out[o..o + 3].copy_from_slice(&colour);
             }
@@ -924,13 +1318,21 @@ impl Chunk<'_> {
             let mut positions = [[0.0f32; 3]; LANES];
             for (l, p) in positions.iter_mut().enumerate().take(lanes) {
                 let i = first_cell + base + l;
-                let cell = Vec3::new((i % res) as f32, ((i / res) % res) as f32, (i / (res * res)) as f32);
+                let cell = Vec3::new(
+                    (i % res) as f32,
+                    ((i / res) % res) as f32,
+                    (i / (res * res)) as f32,
+                );
                 let bits = rng::hash(c.seed, stream::OCCUPANCY, shared.step as u64, i as u64);
-                let jitter = Vec3::new(rng::unit_f32(bits), rng::unit_f32(bits << 24), rng::unit_f32(bits << 48));
+                let jitter = Vec3::new(
+                    rng::unit_f32(bits),
+                    rng::unit_f32(bits << 24),
+                    rng::unit_f32(bits << 48),
+                );
                 *p = (shared.aabb.min + (cell + jitter) * size).to_array();
             }
             let rows = split_rows(c, self.activations);
-            load_features(shared, &positions[..lanes], rows.feats);
+            load_features(shared, &positions[..lanes], rows.feats, self.plane_values);
             density_rows(shared, rows.feats, rows.hidden, rows.density_out);
             for l in 0..lanes {
                 let d = &mut cells[base + l];
@@ -949,21 +1351,32 @@ fn embedding_of<'s>(shared: &Shared<'s>, r: usize) -> &'s [f32] {
         Embedding::PerFrame(all) => {
             let slot = shared.ray_frames.get(r).copied().unwrap_or(0) as usize;
             let n = c.frame_params();
-            all.get(slot * n..slot * n + c.embedding_dim as usize).unwrap_or(&[])
+            all.get(slot * n..slot * n + c.embedding_dim as usize)
+                .unwrap_or(&[])
         }
     }
 }
 
-/// Plane features of up to `LANES` positions into `feats` (unused lanes zero).
-fn load_features(shared: &Shared<'_>, positions: &[[f32; 3]], feats: &mut [Row]) {
+/// Plane features of up to `LANES` positions into `feats` (unused lanes zero), and each
+/// lane's per-plane values into `values` (lane-major).
+fn load_features(
+    shared: &Shared<'_>,
+    positions: &[[f32; 3]],
+    feats: &mut [Row],
+    values: &mut [f32],
+) {
     let n = feats.len();
     let mut out = [0.0f32; 4 * 64];
     for row in feats.iter_mut() {
         row.fill(0.0);
     }
-    for (l, p) in positions.iter().enumerate() {
+    for (l, (p, values)) in positions
+        .iter()
+        .zip(values.chunks_exact_mut(3 * n))
+        .enumerate()
+    {
         let u = shared.aabb.normalise(Vec3::from_array(*p));
-        field::planes_forward(shared.planes, shared.geometry, u, &mut out[..n]);
+        field::planes_forward(shared.planes, shared.geometry, u, &mut out[..n], values);
         for k in 0..n {
             feats[k][l] = out[k];
         }
@@ -971,14 +1384,33 @@ fn load_features(shared: &Shared<'_>, positions: &[[f32; 3]], feats: &mut [Row])
 }
 
 fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
-    let (l1, l2) = (shared.layout.layers[DENSITY_HIDDEN], shared.layout.layers[DENSITY_OUT]);
+    let (l1, l2) = (
+        shared.layout.layers[DENSITY_HIDDEN],
+        shared.layout.layers[DENSITY_OUT],
+    );
     let p = shared.mlp;
-    field::layer_forward(&p[l1.weights..l1.biases], &p[l1.biases..l1.biases + l1.outputs], feats, hidden);
+    field::layer_forward(
+        &p[l1.weights..l1.biases],
+        &p[l1.biases..l1.biases + l1.outputs],
+        feats,
+        hidden,
+    );
     field::relu_forward(hidden);
-    field::layer_forward(&p[l2.weights..l2.biases], &p[l2.biases..l2.biases + l2.outputs], hidden, out);
+    field::layer_forward(
+        &p[l2.weights..l2.biases],
+        &p[l2.biases..l2.biases + l2.outputs],
+        hidden,
+        out,
+    );
 }
 
-fn colour_rows(shared: &Shared<'_>, input: &[Row], h1: &mut [Row], h2: &mut [Row], rgb: &mut [Row]) {
+fn colour_rows(
+    shared: &Shared<'_>,
+    input: &[Row],
+    h1: &mut [Row],
+    h2: &mut [Row],
+    rgb: &mut [Row],
+) {
     let layers = &shared.layout.layers;
     let p = shared.mlp;
     let wb = |i: usize| {
@@ -1001,7 +1433,11 @@ fn colour_rows(shared: &Shared<'_>, input: &[Row], h1: &mut [Row], h2: &mut [Row
 }
 
 /// A layer's weights, and its weight and bias gradients.
-fn split_layer<'p, 'g>(params: &'p [f32], grads: &'g mut [f32], l: crate::config::Layer) -> (&'p [f32], (&'g mut [f32], &'g mut [f32])) {
+fn split_layer<'p, 'g>(
+    params: &'p [f32],
+    grads: &'g mut [f32],
+    l: crate::config::Layer,
+) -> (&'p [f32], (&'g mut [f32], &'g mut [f32])) {
     let (weights, rest) = grads[l.weights..l.biases + l.outputs].split_at_mut(l.biases - l.weights);
     (&params[l.weights..l.biases], (weights, rest))
 }

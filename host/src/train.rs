@@ -1,0 +1,294 @@
+//! Training on the host: the model config as a file, a rayon executor for the core's chunks,
+//! loading a dataset into frame slots, evaluation renders, and checkpoints of the core's state.
+
+use crate::checkpoint::{Checkpoint, Section};
+use crate::dataset::{Dataset, Frame};
+use crate::error::{HostError, Result};
+use orbit_nerf_core::{Config, Executor, TexelUpdate, Trainer};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Serde mirror of the core's `Config`, so configs can be read from TOML and stored in
+/// checkpoints without the core depending on serde.
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "Config", deny_unknown_fields)]
+pub struct ConfigDef {
+    pub scales: u8,
+    pub resolutions: [u16; 4],
+    pub features: u16,
+    pub density_hidden: u16,
+    pub geo_features: u16,
+    pub colour_hidden: u16,
+    pub sh_degree: u8,
+    pub embedding_dim: u16,
+    pub init_low: f32,
+    pub init_high: f32,
+    pub aabb_min: [f32; 3],
+    pub aabb_max: [f32; 3],
+    pub background: [f32; 3],
+    pub occupancy_res: u16,
+    pub occupancy_every: u32,
+    pub occupancy_threshold: f32,
+    pub occupancy_decay: f32,
+    pub march_steps: u16,
+    pub max_samples_per_ray: u16,
+    pub min_transmittance: f32,
+    pub max_frames: u16,
+    pub max_pixels_per_frame: u32,
+    pub rays_per_batch: u32,
+    pub chunks: u8,
+    pub samples_per_chunk: u32,
+    pub steps: u32,
+    pub warmup_steps: u32,
+    pub learning_rate: f32,
+    pub final_lr_factor: f32,
+    pub adam_beta1: f32,
+    pub adam_beta2: f32,
+    pub adam_eps: f32,
+    #[serde(with = "TexelUpdateDef")]
+    pub texel_update: TexelUpdate,
+    pub pose_lr_factor: f32,
+    pub pose_correction: bool,
+    pub seed: u64,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "TexelUpdate", rename_all = "snake_case")]
+pub enum TexelUpdateDef {
+    MasterCopy,
+    StochasticRounding,
+}
+
+#[derive(Serialize, Deserialize)]
+struct ConfigWrapper(#[serde(with = "ConfigDef")] Config);
+
+/// Read a full config from a TOML file (every field named; see `budgets/*.toml`).
+pub fn read_config(path: &Path) -> Result<Config> {
+    let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+    let ConfigWrapper(config) = toml::from_str(&text)
+        .map_err(|e| HostError::invalid(path, format!("not a valid config: {}", e.message())))?;
+    config
+        .validate()
+        .map_err(|e| HostError::invalid(path, e.to_string()))?;
+    Ok(config)
+}
+
+pub fn config_to_toml(config: &Config) -> String {
+    toml::to_string(&ConfigWrapper(*config)).unwrap_or_default()
+}
+
+/// Runs the core's chunks on a rayon pool of a fixed size.
+pub struct RayonExecutor {
+    pool: rayon::ThreadPool,
+}
+
+impl RayonExecutor {
+    pub fn new(threads: usize) -> Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.max(1))
+            .build()
+            .map_err(|e| HostError::Core(format!("thread pool: {e}")))?;
+        Ok(RayonExecutor { pool })
+    }
+}
+
+impl Executor for RayonExecutor {
+    fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F) {
+        self.pool
+            .install(|| items.par_iter_mut().with_max_len(1).for_each(|t| f(t)));
+    }
+}
+
+/// The config with the dataset's scene box, background and frame capacities filled in.
+pub fn fit_config(base: &Config, dataset: &Dataset, frames: usize) -> Config {
+    let mut c = *base;
+    c.aabb_min = dataset.scene_min;
+    c.aabb_max = dataset.scene_max;
+    c.background = dataset.background;
+    c.max_frames = c.max_frames.max(frames.min(u16::MAX as usize) as u16);
+    let largest = dataset
+        .frames
+        .iter()
+        .map(|f| f.camera.pixel_count())
+        .max()
+        .unwrap_or(1);
+    c.max_pixels_per_frame = c.max_pixels_per_frame.max(largest as u32);
+    c
+}
+
+fn core_error(file: &Path, e: orbit_nerf_core::Error) -> HostError {
+    HostError::invalid(file, e.to_string())
+}
+
+/// Put `frames` into slots 0, 1, ... of the trainer.
+pub fn load_frames<'f>(
+    trainer: &mut Trainer<'_>,
+    frames: impl IntoIterator<Item = &'f Frame>,
+) -> Result<()> {
+    for (slot, frame) in frames.into_iter().enumerate() {
+        trainer
+            .set_frame(
+                slot,
+                frame.camera,
+                frame.pose,
+                &frame.pixels,
+                frame.mask.as_deref(),
+            )
+            .map_err(|e| core_error(Path::new(&frame.name), e))?;
+    }
+    Ok(())
+}
+
+/// Render a frame's view (with the given embedding) as RGB f32 in [0, 1].
+pub fn render_frame<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    frame: &Frame,
+    embedding: &[f32],
+) -> Result<Vec<f32>> {
+    let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
+    trainer
+        .render(executor, &frame.camera, &frame.pose, embedding, &mut out)
+        .map_err(|e| core_error(Path::new(&frame.name), e))?;
+    Ok(out)
+}
+
+/// f32 RGB in [0, 1] to RGB8.
+pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
+    image
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect()
+}
+
+/// PSNR (dB) of a rendering against 8-bit ground truth.
+pub fn psnr_against(render: &[f32], truth: &[u8]) -> f64 {
+    let mse: f64 = render
+        .iter()
+        .zip(truth)
+        .map(|(r, t)| {
+            let e = r.clamp(0.0, 1.0) as f64 - *t as f64 / 255.0;
+            e * e
+        })
+        .sum::<f64>()
+        / render.len().max(1) as f64;
+    -10.0 * mse.max(1e-12).log10()
+}
+
+/// Kind tag of training checkpoints.
+pub const CHECKPOINT_KIND: &str = "orbit-nerf trainer";
+
+/// Save the trainer's whole state (and its config) atomically.
+pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
+    let config = postcard::to_allocvec(&ConfigWrapper(*trainer.config()))
+        .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
+    let sections = trainer
+        .sections()
+        .iter()
+        .map(|(name, bytes)| Section {
+            name: name.to_string(),
+            bytes: bytes.to_vec(),
+        })
+        .collect();
+    crate::checkpoint::save(
+        path,
+        &Checkpoint {
+            kind: CHECKPOINT_KIND.to_string(),
+            config,
+            sections,
+        },
+    )
+}
+
+/// The config stored in a checkpoint.
+pub fn checkpoint_config(path: &Path, checkpoint: &Checkpoint) -> Result<Config> {
+    if checkpoint.kind != CHECKPOINT_KIND {
+        return Err(HostError::invalid(
+            path,
+            format!("checkpoint holds `{}`, not a trainer", checkpoint.kind),
+        ));
+    }
+    let ConfigWrapper(config) = postcard::from_bytes(&checkpoint.config)
+        .map_err(|e| HostError::field(path, "config", format!("cannot decode: {e}")))?;
+    config
+        .validate()
+        .map_err(|e| HostError::field(path, "config", e.to_string()))?;
+    Ok(config)
+}
+
+/// Restore every section of a checkpoint into a trainer built from its config.
+pub fn restore_checkpoint(
+    path: &Path,
+    checkpoint: &Checkpoint,
+    trainer: &mut Trainer<'_>,
+) -> Result<()> {
+    for name in trainer.sections().map(|(name, _)| name) {
+        let bytes = checkpoint
+            .section(name)
+            .map_err(|_| HostError::field(path, name, "missing section"))?
+            .to_vec();
+        trainer
+            .restore_section(name, &bytes)
+            .map_err(|e| HostError::field(path, name, e.to_string()))?;
+    }
+    Ok(())
+}
+
+/// Held-out quality of one view.
+#[derive(Clone, Debug)]
+pub struct ViewScore {
+    pub index: usize,
+    pub name: String,
+    pub psnr: f64,
+    /// Mean samples per ray of the rendering.
+    pub samples_per_ray: f32,
+}
+
+/// Render each of `indices` with the mean training embedding, score PSNR against the frame,
+/// and (with `render_dir`) write `view_NNN.png` renders beside `truth_NNN.png`.
+pub fn evaluate<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    dataset: &Dataset,
+    indices: &[usize],
+    render_dir: Option<&Path>,
+) -> Result<Vec<ViewScore>> {
+    let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
+    trainer.mean_embedding(&mut embedding);
+    let mut scores = Vec::with_capacity(indices.len());
+    for &index in indices {
+        let frame = dataset
+            .frames
+            .get(index)
+            .ok_or_else(|| HostError::invalid(&dataset.source, format!("no view {index}")))?;
+        let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
+        let samples_per_ray = trainer
+            .render(executor, &frame.camera, &frame.pose, &embedding, &mut out)
+            .map_err(|e| core_error(Path::new(&frame.name), e))?;
+        if let Some(dir) = render_dir {
+            let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
+            crate::io::write_png(
+                &dir.join(format!("view_{index:03}.png")),
+                w,
+                h,
+                3,
+                &to_rgb8(&out),
+            )?;
+            crate::io::write_png(
+                &dir.join(format!("truth_{index:03}.png")),
+                w,
+                h,
+                3,
+                &frame.pixels,
+            )?;
+        }
+        scores.push(ViewScore {
+            index,
+            name: frame.name.clone(),
+            psnr: psnr_against(&out, &frame.pixels),
+            samples_per_ray,
+        });
+    }
+    Ok(scores)
+}
