@@ -11,7 +11,10 @@ use orbit_nerf_host::train::{self, RayonExecutor, ViewScore};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-type CliResult = Result<(), Box<dyn std::error::Error>>;
+type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
+type CliResult = Fallible<()>;
+/// A dataset with its training and held-out view indices.
+type SplitDataset = (Dataset, Vec<usize>, Vec<usize>);
 
 #[derive(Parser)]
 #[command(name = "orbit-nerf", version, about)]
@@ -155,9 +158,7 @@ fn main() {
 /// sets that itself).
 const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
 
-fn open_dataset(
-    data: &DataArgs,
-) -> Result<(Dataset, Vec<usize>, Vec<usize>), Box<dyn std::error::Error>> {
+fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
     let dataset = dataset::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
     if dataset.frames.is_empty() {
         return Err(format!("{}: no frames", data.data.display()).into());
@@ -166,7 +167,7 @@ fn open_dataset(
     Ok((dataset, train, test))
 }
 
-fn model_config(model: &ModelArgs) -> Result<Config, Box<dyn std::error::Error>> {
+fn model_config(model: &ModelArgs) -> Fallible<Config> {
     let mut config = match &model.config {
         Some(path) => train::read_config(path)?,
         None => Config::DEFAULT,
@@ -185,8 +186,8 @@ fn model_config(model: &ModelArgs) -> Result<Config, Box<dyn std::error::Error>>
 fn with_trainer<R>(
     config: Config,
     frames: &[&orbit_nerf_host::dataset::Frame],
-    f: impl FnOnce(&mut Trainer<'_>) -> Result<R, Box<dyn std::error::Error>>,
-) -> Result<R, Box<dyn std::error::Error>> {
+    f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>,
+) -> Fallible<R> {
     let plan = MemoryPlan::new(&config);
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
@@ -203,10 +204,7 @@ struct TrainSummary {
 }
 
 /// Run the configured number of steps with a progress bar (steps/s, loss, running PSNR).
-fn train_loop<E: Executor>(
-    trainer: &mut Trainer<'_>,
-    executor: &E,
-) -> Result<TrainSummary, Box<dyn std::error::Error>> {
+fn train_loop<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Fallible<TrainSummary> {
     let steps = trainer.config().steps - trainer.state().step.min(trainer.config().steps);
     let bar = ProgressBar::new(steps as u64).with_style(
         ProgressStyle::with_template("train [{bar:30}] {pos}/{len} {per_sec} eta {eta} {msg}")?
@@ -313,10 +311,7 @@ fn print_summary(s: &TrainSummary) {
 }
 
 /// Load a checkpoint into a trainer (with its own config) and run `f`.
-fn with_checkpoint<R>(
-    path: &Path,
-    f: impl FnOnce(&mut Trainer<'_>) -> Result<R, Box<dyn std::error::Error>>,
-) -> Result<R, Box<dyn std::error::Error>> {
+fn with_checkpoint<R>(path: &Path, f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>) -> Fallible<R> {
     let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
     let config = train::checkpoint_config(path, &checkpoint)?;
     with_trainer(config, &[], |trainer| {

@@ -63,14 +63,25 @@ pub enum TexelUpdateDef {
 #[derive(Serialize, Deserialize)]
 struct ConfigWrapper(#[serde(with = "ConfigDef")] Config);
 
-/// Read a full config from a TOML file (every field named; see `budgets/*.toml`).
+/// Read a full config from a TOML file: every field named, either at the top level or in a
+/// `[config]` table (as in the budget files, `budgets/*.toml`).
 pub fn read_config(path: &Path) -> Result<Config> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    let ConfigWrapper(config) = toml::from_str(&text)
-        .map_err(|e| HostError::invalid(path, format!("not a valid config: {}", e.message())))?;
-    config
-        .validate()
-        .map_err(|e| HostError::invalid(path, e.to_string()))?;
+    let table: toml::Table = toml::from_str(&text)
+        .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
+    let table = match table.get("config") {
+        Some(toml::Value::Table(inner)) => inner.clone(),
+        _ => table,
+    };
+    let ConfigWrapper(config) = table.try_into().map_err(|e: toml::de::Error| {
+        HostError::invalid(path, format!("not a valid config: {}", e.message()))
+    })?;
+    config.validate().map_err(|e| match e {
+        orbit_nerf_core::Error::InvalidConfig { field } => {
+            HostError::field(path, field, "out of range")
+        }
+        other => HostError::invalid(path, other.to_string()),
+    })?;
     Ok(config)
 }
 
@@ -96,7 +107,7 @@ impl RayonExecutor {
 impl Executor for RayonExecutor {
     fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F) {
         self.pool
-            .install(|| items.par_iter_mut().with_max_len(1).for_each(|t| f(t)));
+            .install(|| items.par_iter_mut().with_max_len(1).for_each(&f));
     }
 }
 

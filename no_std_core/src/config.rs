@@ -128,7 +128,7 @@ impl Config {
         max_frames: 128,
         max_pixels_per_frame: 128 * 128,
         rays_per_batch: 4096,
-        chunks: 8,
+        chunks: 4,
         samples_per_chunk: 16 * 1024,
         steps: 3000,
         warmup_steps: 128,
@@ -261,7 +261,7 @@ impl Config {
             return bad("chunks");
         }
         if self.rays_per_batch == 0
-            || self.rays_per_batch % self.chunks as u32 != 0
+            || !self.rays_per_batch.is_multiple_of(self.chunks as u32)
             || self.rays_per_batch > (1 << 24)
         {
             return bad("rays_per_batch");

@@ -130,7 +130,7 @@ impl<'a> FrameStore<'a> {
             .to_cols_array()
             .iter()
             .fold(0.0f32, |a, v| a.max(v.abs()));
-        if !(off < ORTHONORMAL_TOLERANCE) || pose.rotation.determinant() < 0.0 {
+        if off.is_nan() || off >= ORTHONORMAL_TOLERANCE || pose.rotation.determinant() < 0.0 {
             return Err(Error::InvalidFrame {
                 field: "pose.rotation",
             });

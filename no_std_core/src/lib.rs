@@ -4,6 +4,8 @@
 //! on every target. The host brings threads through [`Executor`]; the core never depends on
 //! which thread ran which chunk.
 #![cfg_attr(not(feature = "std"), no_std)]
+// The kernels index several structure-of-arrays rows by the same lane or feature.
+#![allow(clippy::needless_range_loop)]
 
 mod arena;
 pub mod camera;

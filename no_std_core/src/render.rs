@@ -117,7 +117,7 @@ pub fn march(
     // max_samples + (cells crossed) iterations.
     loop {
         let t = t_near + (k + jitter) * step;
-        if !(t < t_far) || count >= max_samples {
+        if t.is_nan() || t >= t_far || count >= max_samples {
             return count;
         }
         let cell = occupancy.cell_of(origin + dir * t);

@@ -615,7 +615,7 @@ impl<'a> Trainer<'a> {
         executor.for_each(&mut self.chunks, |chunk| chunk.train(&shared));
         let report = self.reduce_and_apply();
         self.state.step += 1;
-        if self.state.step % self.config.occupancy_every == 0 {
+        if self.state.step.is_multiple_of(self.config.occupancy_every) {
             self.refresh_occupancy(executor);
         }
         Ok(report)
@@ -1218,15 +1218,12 @@ impl Chunk<'_> {
             for gi in 0..geo_len {
                 grad.density_out[1 + gi] = grad.colour_in[sh_len + gi];
             }
-            if dim > 0 {
-                if let Embedding::PerFrame(_) = shared.embedding {
-                    for l in 0..lanes {
-                        let slot = shared.ray_frames[self.sample_ray[base + l] as usize] as usize;
-                        let dst =
-                            &mut self.frame_grads[slot * frame_params..slot * frame_params + dim];
-                        for (k, d) in dst.iter_mut().enumerate() {
-                            *d += grad.colour_in[sh_len + geo_len + k][l];
-                        }
+            if dim > 0 && matches!(shared.embedding, Embedding::PerFrame(_)) {
+                for l in 0..lanes {
+                    let slot = shared.ray_frames[self.sample_ray[base + l] as usize] as usize;
+                    let dst = &mut self.frame_grads[slot * frame_params..slot * frame_params + dim];
+                    for (k, d) in dst.iter_mut().enumerate() {
+                        *d += grad.colour_in[sh_len + geo_len + k][l];
                     }
                 }
             }

@@ -1,0 +1,482 @@
+//! The core's runtime guarantees, end to end: memory budgets, no allocation in a step,
+//! determinism across runs and thread counts, skipped non-finite steps, rejected bad input,
+//! and checkpoints.
+
+use orbit_nerf_core::config::PART_ALIGN;
+use orbit_nerf_core::glam::{Mat3, Vec3};
+use orbit_nerf_core::{Camera, Config, Error, MemoryPlan, Pose, Sequential, Trainer};
+use orbit_nerf_host::dataset::{self, Dataset};
+use orbit_nerf_host::train::{self, RayonExecutor};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Counts allocations made by threads that armed it, so other tests running in parallel do
+/// not interfere.
+struct CountingAllocator;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    static ARMED: Cell<bool> = const { Cell::new(false) };
+}
+
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if ARMED.try_with(|a| a.get()).unwrap_or(false) {
+            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        }
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if ARMED.try_with(|a| a.get()).unwrap_or(false) {
+            ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        }
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+const LEGO: &str = "../shared/data/nerf_synthetic/lego";
+
+/// Lego at 40 px, loaded once; `None` (and a message) when the shared data is absent.
+fn lego() -> Option<&'static Dataset> {
+    static DATA: OnceLock<Option<Dataset>> = OnceLock::new();
+    DATA.get_or_init(|| {
+        let path = root().join(LEGO);
+        if !path.exists() {
+            eprintln!("skipping: {} not found", path.display());
+            return None;
+        }
+        Some(dataset::open(&path, Some(40), [1.0; 3]).expect("lego loads"))
+    })
+    .as_ref()
+}
+
+fn tiny_config() -> Config {
+    train::read_config(&root().join("budgets/tiny.toml")).expect("tiny budget parses")
+}
+
+/// Train `steps` steps of the tiny profile on lego with `threads` workers and return the
+/// checkpoint bytes.
+fn checkpoint_after(steps: u32, threads: usize, seed: u64) -> Option<Vec<u8>> {
+    let data = lego()?;
+    let mut config = tiny_config();
+    config.steps = steps;
+    config.warmup_steps = 32.min(steps);
+    config.seed = seed;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let (train_idx, _) = dataset::split_every(data.frames.len(), 8);
+    train::load_frames(
+        &mut trainer,
+        train_idx.iter().take(32).map(|&i| &data.frames[i]),
+    )
+    .unwrap();
+    let executor = RayonExecutor::new(threads).unwrap();
+    for _ in 0..steps {
+        trainer.step(&executor).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.onrf");
+    train::save_checkpoint(&path, &trainer).unwrap();
+    Some(std::fs::read(path).unwrap())
+}
+
+#[test]
+fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
+    let Some(a) = checkpoint_after(200, 2, 7) else {
+        return;
+    };
+    let b = checkpoint_after(200, 2, 7).unwrap();
+    assert!(a == b, "two runs with the same seed differ");
+    let one_thread = checkpoint_after(200, 1, 7).unwrap();
+    assert!(a == one_thread, "1 thread and 2 threads differ");
+    let other_seed = checkpoint_after(200, 2, 8).unwrap();
+    assert!(a != other_seed, "the seed has no effect");
+}
+
+/// The `[bytes]` table and the cap of a budget file.
+fn budget(name: &str) -> (Config, toml::Table, usize) {
+    let path = root().join("budgets").join(name);
+    let config = train::read_config(&path).unwrap();
+    let table: toml::Table = toml::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let bytes = table["bytes"].as_table().unwrap().clone();
+    let cap = table["max_total_bytes"].as_integer().unwrap() as usize;
+    (config, bytes, cap)
+}
+
+fn plan_parts(plan: &MemoryPlan) -> [(&'static str, usize); 10] {
+    [
+        ("planes", plan.planes),
+        ("plane_master", plan.plane_master),
+        ("plane_moments", plan.plane_moments),
+        ("plane_grads", plan.plane_grads),
+        ("mlp", plan.mlp),
+        ("occupancy", plan.occupancy),
+        ("frames", plan.frames),
+        ("ray_batch", plan.ray_batch),
+        ("samples", plan.samples),
+        ("total", plan.total),
+    ]
+}
+
+#[test]
+fn memory_plans_match_the_recorded_budgets_and_the_arena_use() {
+    for (name, cap_expected) in [("standard.toml", 64 << 20), ("tiny.toml", 8 << 20)] {
+        let (config, recorded, cap) = budget(name);
+        assert_eq!(cap, cap_expected, "{name}: cap");
+        let plan = MemoryPlan::new(&config);
+        assert!(
+            plan.total <= cap,
+            "{name}: plan {} bytes exceeds the cap {cap}",
+            plan.total
+        );
+        let mismatches: Vec<String> = plan_parts(&plan)
+            .iter()
+            .filter(|(part, bytes)| {
+                recorded.get(*part).and_then(|v| v.as_integer()) != Some(*bytes as i64)
+            })
+            .map(|(part, bytes)| format!("{part} = {bytes}"))
+            .collect();
+        assert!(
+            mismatches.is_empty(),
+            "{name}: the plan differs from the recorded [bytes]; now:\n{}",
+            mismatches.join("\n")
+        );
+        // The bytes the core takes from the arena equal the plan, part by part.
+        let mut arena = vec![0u8; plan.total];
+        let trainer = Trainer::new(config, &mut arena).unwrap();
+        let used = trainer.memory_used();
+        assert_eq!(
+            MemoryPlan {
+                total: plan.total,
+                ..used
+            },
+            plan,
+            "{name}: parts used differ from the plan"
+        );
+        assert_eq!(
+            used.total + PART_ALIGN,
+            plan.total,
+            "{name}: total used differs from the plan"
+        );
+    }
+}
+
+#[test]
+fn arena_size_and_alignment_are_handled() {
+    let config = tiny_config();
+    let plan = MemoryPlan::new(&config);
+    let mut small = vec![0u8; plan.total - 1];
+    match Trainer::new(config, &mut small) {
+        Err(Error::ArenaTooSmall { needed, got }) => {
+            assert_eq!((needed, got), (plan.total, plan.total - 1))
+        }
+        other => panic!("expected ArenaTooSmall, got {:?}", other.err()),
+    }
+    // An arena starting at an odd address still works: the plan includes alignment slack.
+    let mut big = vec![0u8; plan.total + 1];
+    assert!(Trainer::new(config, &mut big[1..]).is_ok());
+}
+
+#[test]
+fn bad_configs_name_the_field() {
+    let base = tiny_config();
+    type Breakage = (&'static str, fn(&mut Config));
+    let cases: [Breakage; 10] = [
+        ("scales", |c| c.scales = 0),
+        ("resolutions", |c| c.resolutions[1] = 1),
+        ("features", |c| c.features = 12),
+        ("sh_degree", |c| c.sh_degree = 5),
+        ("aabb", |c| c.aabb_max[0] = f32::NAN),
+        ("rays_per_batch", |c| c.rays_per_batch = 1023),
+        ("chunks", |c| c.chunks = 0),
+        ("learning_rate", |c| c.learning_rate = f32::INFINITY),
+        ("pose_lr_factor", |c| c.pose_lr_factor = 0.5),
+        ("max_samples_per_ray", |c| c.max_samples_per_ray = u16::MAX),
+    ];
+    for (field, break_it) in cases {
+        let mut config = base;
+        break_it(&mut config);
+        assert_eq!(config.validate(), Err(Error::InvalidConfig { field }));
+        let mut arena = vec![0u8; 64];
+        assert_eq!(
+            Trainer::new(config, &mut arena).err(),
+            Some(Error::InvalidConfig { field })
+        );
+    }
+}
+
+fn camera(size: u16) -> Camera {
+    Camera {
+        width: size,
+        height: size,
+        fx: 50.0,
+        fy: 50.0,
+        cx: size as f32 / 2.0,
+        cy: size as f32 / 2.0,
+    }
+}
+
+fn looking_at_origin() -> Pose {
+    // Camera on -z looking along +z (OpenCV axes: x right, y down).
+    Pose {
+        rotation: Mat3::IDENTITY,
+        center: Vec3::new(0.0, 0.0, -4.0),
+    }
+}
+
+#[test]
+fn bad_frames_are_rejected_and_leave_the_slot_unchanged() {
+    let config = tiny_config();
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let pixels = vec![128u8; 16 * 16 * 3];
+    let pose = looking_at_origin();
+    let mut skewed = pose;
+    skewed.rotation.x_axis.x = 1.5;
+    let mut nan_pose = pose;
+    nan_pose.center.y = f32::NAN;
+    let zero_focal = Camera {
+        fx: 0.0,
+        ..camera(16)
+    };
+    let cases: Vec<(Error, Result<(), Error>)> = vec![
+        (
+            Error::InvalidFrame { field: "pixels" },
+            trainer.set_frame(0, camera(16), pose, &pixels[1..], None),
+        ),
+        (
+            Error::InvalidFrame { field: "mask" },
+            trainer.set_frame(0, camera(16), pose, &pixels, Some(&[255; 3])),
+        ),
+        (
+            Error::InvalidFrame { field: "camera" },
+            trainer.set_frame(0, zero_focal, pose, &pixels, None),
+        ),
+        (
+            Error::InvalidFrame {
+                field: "pose.rotation",
+            },
+            trainer.set_frame(0, camera(16), skewed, &pixels, None),
+        ),
+        (
+            Error::InvalidFrame { field: "pose" },
+            trainer.set_frame(0, camera(16), nan_pose, &pixels, None),
+        ),
+        (
+            Error::InvalidFrame { field: "slot" },
+            trainer.set_frame(32, camera(16), pose, &pixels, None),
+        ),
+        (
+            Error::FrameTooLarge {
+                pixels: 128 * 128,
+                capacity: 4096,
+            },
+            trainer.set_frame(0, camera(128), pose, &vec![0; 128 * 128 * 3], None),
+        ),
+    ];
+    for (want, got) in cases {
+        assert_eq!(got, Err(want));
+    }
+    assert!(trainer.frames().is_empty());
+    // With no frames a step is an error, not a panic.
+    assert_eq!(trainer.step(&Sequential).err(), Some(Error::NoFrames));
+    // Empty (all-black) and saturated frames are valid input and train without trouble.
+    trainer
+        .set_frame(0, camera(16), pose, &[0; 16 * 16 * 3], None)
+        .unwrap();
+    trainer
+        .set_frame(1, camera(16), pose, &[255; 16 * 16 * 3], Some(&[255; 256]))
+        .unwrap();
+    for _ in 0..20 {
+        assert!(!trainer.step(&Sequential).unwrap().skipped);
+    }
+}
+
+#[test]
+fn a_step_with_non_finite_values_is_skipped_and_counted() {
+    let config = tiny_config();
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    trainer
+        .set_frame(
+            0,
+            camera(16),
+            looking_at_origin(),
+            &[200; 16 * 16 * 3],
+            None,
+        )
+        .unwrap();
+    trainer.step(&Sequential).unwrap();
+    // Poison one weight of the colour MLP's output layer: every colour becomes NaN.
+    let mut mlp: Vec<f32> = trainer.mlp_parameters().to_vec();
+    let out_layer = config.mlp().layers[orbit_nerf_core::config::COLOUR_OUT];
+    mlp[out_layer.weights] = f32::NAN;
+    trainer
+        .restore_section("mlp", bytemuck::cast_slice(&mlp))
+        .unwrap();
+    let planes_before = trainer.planes().to_vec();
+    let report = trainer.step(&Sequential).unwrap();
+    assert!(report.skipped);
+    assert_eq!(trainer.state().skipped, 1);
+    assert_eq!(trainer.state().updates, 1);
+    assert!(
+        trainer.planes() == planes_before.as_slice(),
+        "a skipped step changed the planes"
+    );
+    let finite = trainer
+        .mlp_parameters()
+        .iter()
+        .enumerate()
+        .all(|(i, v)| i == out_layer.weights || v.is_finite());
+    assert!(finite, "non-finite values reached the parameters");
+}
+
+#[test]
+fn a_training_step_allocates_nothing() {
+    let Some(data) = lego() else { return };
+    let mut config = tiny_config();
+    config.occupancy_every = 4;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    train::load_frames(&mut trainer, data.frames.iter().take(8)).unwrap();
+    let frame = &data.frames[0];
+    let mut image = vec![0.0f32; frame.camera.pixel_count() * 3];
+    ALLOCATIONS.store(0, Ordering::SeqCst);
+    ARMED.with(|a| a.set(true));
+    for _ in 0..10 {
+        trainer.step(&Sequential).unwrap();
+    }
+    trainer
+        .render(&Sequential, &frame.camera, &frame.pose, &[], &mut image)
+        .unwrap();
+    ARMED.with(|a| a.set(false));
+    assert_eq!(
+        ALLOCATIONS.load(Ordering::SeqCst),
+        0,
+        "the core allocated during steps or rendering"
+    );
+    assert!(
+        trainer.state().refreshes >= 2,
+        "the occupancy refresh ran inside the armed window"
+    );
+}
+
+#[test]
+fn training_reduces_the_loss_and_renders_the_held_out_views() {
+    let Some(data) = lego() else { return };
+    let mut config = tiny_config();
+    config.steps = 300;
+    let config = train::fit_config(&config, data, 32);
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let (train_idx, test_idx) = dataset::split_every(data.frames.len(), 8);
+    train::load_frames(
+        &mut trainer,
+        train_idx.iter().take(32).map(|&i| &data.frames[i]),
+    )
+    .unwrap();
+    let executor = RayonExecutor::new(2).unwrap();
+    let first = trainer.step(&executor).unwrap().mse;
+    let before = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], None).unwrap();
+    let mut last = first;
+    for _ in 1..300 {
+        last = trainer.step(&executor).unwrap().mse;
+    }
+    let after = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], None).unwrap();
+    assert!(last < first * 0.2, "loss {first} -> {last}");
+    for (b, a) in before.iter().zip(&after) {
+        assert!(
+            a.psnr > b.psnr + 5.0 && a.psnr > 20.0,
+            "view {}: {:.2} -> {:.2} dB",
+            a.index,
+            b.psnr,
+            a.psnr
+        );
+    }
+    assert!(
+        trainer.occupancy_fraction() < 0.5,
+        "occupancy did not prune empty space"
+    );
+}
+
+#[test]
+fn checkpoints_round_trip_and_reject_damage() {
+    let Some(bytes) = checkpoint_after(20, 2, 3) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("a.onrf");
+    std::fs::write(&path, &bytes).unwrap();
+    let checkpoint = orbit_nerf_host::checkpoint::load(&path).unwrap();
+    let config = train::checkpoint_config(&path, &checkpoint).unwrap();
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    train::restore_checkpoint(&path, &checkpoint, &mut trainer).unwrap();
+    let again = dir.path().join("b.onrf");
+    train::save_checkpoint(&again, &trainer).unwrap();
+    assert!(
+        std::fs::read(&again).unwrap() == bytes,
+        "restore + save changed the checkpoint"
+    );
+    assert_eq!(trainer.state().step, 20);
+
+    // Truncated file: a clear error naming the file.
+    let cut = dir.path().join("cut.onrf");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let err = orbit_nerf_host::checkpoint::load(&cut)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("cut.onrf"), "{err}");
+
+    // A checkpoint of another model does not fit this trainer: the section is named.
+    let mut other = config;
+    other.features = 16;
+    let plan = MemoryPlan::new(&other);
+    let mut arena = vec![0u8; plan.total];
+    let mut wrong = Trainer::new(other, &mut arena).unwrap();
+    let err = train::restore_checkpoint(&path, &checkpoint, &mut wrong)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("planes"), "{err}");
+}
+
+#[test]
+fn bad_config_files_name_the_file_and_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(root().join("budgets/tiny.toml")).unwrap();
+    let cases = [
+        ("features = 8", "features = 12", "features"),
+        ("chunks = 2", "chunks = 0", "chunks"),
+        ("seed = 0", "seed = 0\nunknown_knob = 1", "unknown_knob"),
+        ("march_steps = 256", "", "march_steps"),
+    ];
+    for (from, to, field) in cases {
+        let path = dir.path().join("bad.toml");
+        std::fs::write(&path, text.replace(from, to)).unwrap();
+        let err = train::read_config(&path).unwrap_err().to_string();
+        assert!(err.contains("bad.toml") && err.contains(field), "{err}");
+    }
+    let missing = train::read_config(Path::new("/nonexistent/config.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(missing.contains("/nonexistent/config.toml"), "{missing}");
+}
