@@ -66,7 +66,19 @@ struct ModelArgs {
     /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     threads: usize,
+    /// Appearance embedding size per frame (overrides the config; 0 disables it).
+    #[arg(long)]
+    embedding_dim: Option<u16>,
+    /// Learn a pose correction per frame (overrides the config).
+    #[arg(long)]
+    pose_correction: Option<bool>,
+    /// Evaluation: steps fitting a held-out view's embedding on its left half.
+    #[arg(long, default_value_t = FIT_STEPS)]
+    fit_steps: u32,
 }
+
+/// Default steps fitting a held-out view's appearance embedding.
+const FIT_STEPS: u32 = 50;
 
 #[derive(Args)]
 struct TrainArgs {
@@ -90,6 +102,9 @@ struct EvalArgs {
     renders: Option<PathBuf>,
     #[arg(long, default_value_t = 2)]
     threads: usize,
+    /// Steps fitting each view's appearance embedding on its left half.
+    #[arg(long, default_value_t = FIT_STEPS)]
+    fit_steps: u32,
 }
 
 #[derive(Args)]
@@ -105,6 +120,9 @@ struct RenderArgs {
     out: PathBuf,
     #[arg(long, default_value_t = 2)]
     threads: usize,
+    /// Steps fitting each view's appearance embedding on its left half.
+    #[arg(long, default_value_t = FIT_STEPS)]
+    fit_steps: u32,
 }
 
 #[derive(Args)]
@@ -178,6 +196,12 @@ fn model_config(model: &ModelArgs) -> Fallible<Config> {
     }
     if let Some(seed) = model.seed {
         config.seed = seed;
+    }
+    if let Some(dim) = model.embedding_dim {
+        config.embedding_dim = dim;
+    }
+    if let Some(on) = model.pose_correction {
+        config.pose_correction = on;
     }
     Ok(config)
 }
@@ -290,6 +314,7 @@ fn run_train(args: &TrainArgs) -> CliResult {
             &executor,
             &dataset,
             &test_idx,
+            args.model.fit_steps,
             Some(&args.out.join("renders")),
         )?;
         print_scores(&scores);
@@ -329,6 +354,7 @@ fn run_eval(args: &EvalArgs) -> CliResult {
             &executor,
             &dataset,
             &test_idx,
+            args.fit_steps,
             args.renders.as_deref(),
         )?;
         print_scores(&scores);
@@ -345,7 +371,14 @@ fn run_render(args: &RenderArgs) -> CliResult {
     };
     let executor = RayonExecutor::new(args.threads)?;
     with_checkpoint(&args.checkpoint, |trainer| {
-        let scores = train::evaluate(trainer, &executor, &dataset, &views, Some(&args.out))?;
+        let scores = train::evaluate(
+            trainer,
+            &executor,
+            &dataset,
+            &views,
+            args.fit_steps,
+            Some(&args.out),
+        )?;
         for s in &scores {
             println!(
                 "view {:>3}: {:.2} dB -> {}",
@@ -443,6 +476,9 @@ fn run_demo(args: &DemoArgs) -> CliResult {
             steps: args.steps,
             seed: None,
             threads: args.threads,
+            embedding_dim: None,
+            pose_correction: None,
+            fit_steps: FIT_STEPS,
         },
         out: args.out.clone(),
     };

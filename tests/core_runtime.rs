@@ -395,12 +395,12 @@ fn training_reduces_the_loss_and_renders_the_held_out_views() {
     .unwrap();
     let executor = RayonExecutor::new(2).unwrap();
     let first = trainer.step(&executor).unwrap().mse;
-    let before = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], None).unwrap();
+    let before = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], 0, None).unwrap();
     let mut last = first;
     for _ in 1..300 {
         last = trainer.step(&executor).unwrap().mse;
     }
-    let after = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], None).unwrap();
+    let after = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], 0, None).unwrap();
     assert!(last < first * 0.2, "loss {first} -> {last}");
     for (b, a) in before.iter().zip(&after) {
         assert!(

@@ -251,34 +251,57 @@ pub fn restore_checkpoint(
 pub struct ViewScore {
     pub index: usize,
     pub name: String,
+    /// PSNR over the whole image and over its right half (the half not used to fit the
+    /// appearance embedding).
     pub psnr: f64,
+    pub psnr_right: f64,
     /// Mean samples per ray of the rendering.
     pub samples_per_ray: f32,
+    /// The rendering, RGB f32 in [0, 1].
+    pub render: Vec<f32>,
 }
 
-/// Render each of `indices` with the mean training embedding, score PSNR against the frame,
-/// and (with `render_dir`) write `view_NNN.png` renders beside `truth_NNN.png`.
+/// Evaluate held-out views as in the paper and K-Planes: with the field frozen, start a
+/// fresh appearance embedding at the mean of the training embeddings, fit it for
+/// `fit_steps` steps on the left half of the view's pixels (skipped without embeddings),
+/// render the whole view and score it. With `render_dir`, writes `view_NNN.png` renders
+/// beside `truth_NNN.png`.
 pub fn evaluate<E: Executor>(
     trainer: &mut Trainer<'_>,
     executor: &E,
     dataset: &Dataset,
     indices: &[usize],
+    fit_steps: u32,
     render_dir: Option<&Path>,
 ) -> Result<Vec<ViewScore>> {
-    let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
-    trainer.mean_embedding(&mut embedding);
+    let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
+    trainer.mean_embedding(&mut mean);
     let mut scores = Vec::with_capacity(indices.len());
     for &index in indices {
         let frame = dataset
             .frames
             .get(index)
             .ok_or_else(|| HostError::invalid(&dataset.source, format!("no view {index}")))?;
+        let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
+        let mut embedding = mean.clone();
+        if !embedding.is_empty() && fit_steps > 0 {
+            trainer
+                .fit_embedding(
+                    executor,
+                    &frame.camera,
+                    &frame.pose,
+                    &frame.pixels,
+                    (0, w / 2),
+                    fit_steps,
+                    &mut embedding,
+                )
+                .map_err(|e| core_error(Path::new(&frame.name), e))?;
+        }
         let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
         let samples_per_ray = trainer
             .render(executor, &frame.camera, &frame.pose, &embedding, &mut out)
             .map_err(|e| core_error(Path::new(&frame.name), e))?;
         if let Some(dir) = render_dir {
-            let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
             crate::io::write_png(
                 &dir.join(format!("view_{index:03}.png")),
                 w,
@@ -294,11 +317,23 @@ pub fn evaluate<E: Executor>(
                 &frame.pixels,
             )?;
         }
+        let right = |img: &[f32]| -> Vec<f32> {
+            img.chunks_exact(w as usize * 3)
+                .flat_map(|row| row[(w / 2) as usize * 3..].to_vec())
+                .collect()
+        };
+        let truth_right: Vec<u8> = frame
+            .pixels
+            .chunks_exact(w as usize * 3)
+            .flat_map(|row| row[(w / 2) as usize * 3..].to_vec())
+            .collect();
         scores.push(ViewScore {
             index,
             name: frame.name.clone(),
             psnr: psnr_against(&out, &frame.pixels),
+            psnr_right: psnr_against(&right(&out), &truth_right),
             samples_per_ray,
+            render: out,
         });
     }
     Ok(scores)

@@ -96,3 +96,118 @@ impl Pose {
         self.rotation.is_finite() && self.center.is_finite()
     }
 }
+
+/// A learned per-frame pose correction, as in the paper: `dt` is added to the ray origins,
+/// and ray directions are rotated (in the world frame; the origin is not rotated) by the unit
+/// quaternion with vector part `v` and scalar part `sqrt(1 - |v|²)`.
+///
+/// Guard: `|v|` is capped at 1 (beyond it `v` is scaled back to unit length, a 180° rotation),
+/// and the derivative of the scalar part, `-v / w`, uses `max(w, MIN_SCALAR)`, so values and
+/// gradients stay finite however far an update pushes `v`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PoseCorrection {
+    pub dt: Vec3,
+    pub v: Vec3,
+}
+
+impl PoseCorrection {
+    /// Smallest scalar part used in the gradient of `sqrt(1 - |v|²)`.
+    pub const MIN_SCALAR: f32 = 1e-3;
+
+    /// From the six parameters `[dt.x, dt.y, dt.z, v.x, v.y, v.z]` (zeros if fewer).
+    pub fn from_params(p: &[f32]) -> Self {
+        match p {
+            [a, b, c, d, e, f, ..] => PoseCorrection {
+                dt: Vec3::new(*a, *b, *c),
+                v: Vec3::new(*d, *e, *f),
+            },
+            _ => PoseCorrection::default(),
+        }
+    }
+
+    /// The vector part actually used (capped at unit length) and the scalar part.
+    fn quaternion(&self) -> (Vec3, f32) {
+        let n2 = self.v.length_squared();
+        if n2 > 1.0 {
+            (self.v * (1.0 / libm::sqrtf(n2)), 0.0)
+        } else if n2.is_finite() {
+            (self.v, libm::sqrtf(1.0 - n2))
+        } else {
+            (Vec3::ZERO, 1.0)
+        }
+    }
+
+    /// Rotate a direction: `d + 2w (v × d) + 2 v × (v × d)`.
+    pub fn rotate(&self, d: Vec3) -> Vec3 {
+        let (v, w) = self.quaternion();
+        let vxd = v.cross(d);
+        d + vxd * (2.0 * w) + v.cross(vxd) * 2.0
+    }
+
+    /// d loss / d v given d loss / d (rotated direction) `g`, for the direction `d` that was
+    /// rotated.
+    pub fn rotation_vjp(&self, d: Vec3, g: Vec3) -> Vec3 {
+        let (v, w) = self.quaternion();
+        let d_w = -v / w.max(Self::MIN_SCALAR);
+        // Term 2w (v × d): through w and through v. Term 2 v × (v × d) = 2 (v (v·d) - d |v|²).
+        d_w * (2.0 * g.dot(v.cross(d)))
+            + d.cross(g) * (2.0 * w)
+            + (g * v.dot(d) + d * g.dot(v) - v * (2.0 * g.dot(d))) * 2.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pose_correction_rotation_is_a_rotation_and_its_gradient_matches_finite_differences() {
+        let d = Vec3::new(0.3, -0.5, 0.81).normalize();
+        let g = Vec3::new(0.7, 0.2, -0.4);
+        for v in [
+            Vec3::new(0.01, -0.02, 0.03),
+            Vec3::new(0.3, 0.4, -0.5),
+            Vec3::ZERO,
+        ] {
+            let pc = PoseCorrection { dt: Vec3::ZERO, v };
+            assert!((pc.rotate(d).length() - 1.0).abs() < 1e-5);
+            let analytic = pc.rotation_vjp(d, g);
+            for i in 0..3 {
+                let h = 1e-3;
+                let (mut p, mut m) = (pc, pc);
+                p.v[i] += h;
+                m.v[i] -= h;
+                let numeric = (g.dot(p.rotate(d)) - g.dot(m.rotate(d))) / (2.0 * h);
+                assert!(
+                    (analytic[i] - numeric).abs() < 2e-3,
+                    "v {v}: {} vs {numeric}",
+                    analytic[i]
+                );
+            }
+        }
+        // The quaternion with vector part v is the rotation by 2 asin(|v|) about v.
+        let v = Vec3::new(0.0, 0.0, libm::sinf(0.25));
+        let rotated = PoseCorrection { dt: Vec3::ZERO, v }.rotate(Vec3::X);
+        assert!((rotated - Vec3::new(libm::cosf(0.5), libm::sinf(0.5), 0.0)).length() < 1e-6);
+    }
+
+    #[test]
+    fn pose_correction_stays_finite_at_and_beyond_unit_vector_part() {
+        let d = Vec3::new(0.0, 0.6, 0.8);
+        let g = Vec3::ONE;
+        for v in [
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.6, 0.8, 1e-4),
+            Vec3::splat(3.0),
+            Vec3::splat(f32::NAN),
+        ] {
+            let pc = PoseCorrection { dt: Vec3::ZERO, v };
+            let r = pc.rotate(d);
+            assert!(
+                r.is_finite() && (r.length() - 1.0).abs() < 1e-4,
+                "{v} -> {r}"
+            );
+            assert!(pc.rotation_vjp(d, g).is_finite() || !v.is_finite(), "{v}");
+        }
+    }
+}

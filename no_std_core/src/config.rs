@@ -414,8 +414,9 @@ pub const fn sample_floats(c: &Config) -> usize {
     3 + 1 + c.geo_features as usize + RGB + 1 + RGB
 }
 
-/// f32 values stored per ray of the batch: origin, direction, target colour.
-pub const RAY_FLOATS: usize = 9;
+/// f32 values stored per ray of the batch: origin and direction (pose-corrected), target
+/// colour, and the direction from the pose label (for the pose-correction gradient).
+pub const RAY_FLOATS: usize = 12;
 
 impl MemoryPlan {
     pub const fn new(c: &Config) -> MemoryPlan {
@@ -452,7 +453,8 @@ impl MemoryPlan {
             + align((chunk_rays + 1) * 4)
             + align(2 * LANES * activation_floats(c) * 4)
             + align(LANES * 3 * c.density_inputs() * 4)
-            + align(LANES * widest_layer(c) * 4);
+            + align(LANES * widest_layer(c) * 4)
+            + align(chunk_rays * 6 * 4);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes

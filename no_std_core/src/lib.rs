@@ -17,7 +17,7 @@ pub mod render;
 pub mod rng;
 pub mod trainer;
 
-pub use camera::{Camera, Pose};
+pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MemoryPlan, TexelUpdate};
 pub use glam;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};

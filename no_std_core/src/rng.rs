@@ -36,6 +36,7 @@ pub mod stream {
     pub const OCCUPANCY: u64 = 3;
     pub const ROUNDING: u64 = 4;
     pub const INIT: u64 = 5;
+    pub const FIT: u64 = 6;
 }
 
 /// A small sequential generator for initialisation and tests.

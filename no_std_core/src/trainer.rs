@@ -13,7 +13,7 @@ use crate::frames::{FrameMeta, FrameStore};
 use crate::optim::{self, AdamStep};
 use crate::render::{self, Aabb, OccupancyView};
 use crate::rng::{self, stream};
-use crate::{Camera, Error, Pose};
+use crate::{Camera, Error, Pose, PoseCorrection};
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use half::f16;
@@ -90,6 +90,9 @@ struct Shared<'s> {
     step: u32,
     /// Offset the sample positions along each ray by a seeded fraction of a step.
     jitter: bool,
+    /// Only the fixed embedding is being fitted: the backward pass stops at the colour MLP's
+    /// input and sends the embedding's gradient to the chunk's first frame-gradient slot.
+    fit_embedding: bool,
 }
 
 /// Activation rows of one mini-batch of `LANES` samples (or their gradients).
@@ -140,6 +143,8 @@ pub struct Chunk<'a> {
     /// Per-plane bilinear values of each lane's sample (lane-major), kept from the
     /// recomputed forward pass for the plane backward pass.
     plane_values: &'a mut [f32],
+    /// d loss / d origin and d loss / d direction of each of the chunk's rays (pose correction).
+    ray_grads: &'a mut [f32],
     /// Output gradients of one layer in lane-major order (the weight-gradient kernel's input).
     lane_major: &'a mut [f32],
     /// First ray of the batch this chunk works on, and how many.
@@ -274,6 +279,7 @@ impl<'a> Trainer<'a> {
             let (activations, gradients) = act.split_at_mut(rows);
             let plane_values = carver.take::<f32>(LANES * 3 * c.density_inputs())?;
             let lane_major = carver.take::<f32>(LANES * widest_layer(c))?;
+            let ray_grads = carver.take::<f32>(chunk_rays * 6)?;
             let chunk = Chunk {
                 plane_grads,
                 touched,
@@ -291,6 +297,7 @@ impl<'a> Trainer<'a> {
                 gradients,
                 plane_values,
                 lane_major,
+                ray_grads,
                 first_ray: i * chunk_rays,
                 ray_count: chunk_rays,
                 report: ChunkReport::default(),
@@ -571,14 +578,23 @@ impl<'a> Trainer<'a> {
             );
             let (i, j) = (pixel % meta.width, pixel / meta.width);
             let (o, d) = Self::pixel_ray(&camera, &meta.pose(), i, j);
+            let n = c.frame_params();
+            let correction = if c.pose_correction {
+                PoseCorrection::from_params(
+                    &self.frame_params[slot * n + c.embedding_dim as usize..(slot + 1) * n],
+                )
+            } else {
+                PoseCorrection::default()
+            };
             let px =
                 &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
             let ray = &mut self.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
-            ray[..3].copy_from_slice(&o.to_array());
-            ray[3..6].copy_from_slice(&d.to_array());
+            ray[..3].copy_from_slice(&(o + correction.dt).to_array());
+            ray[3..6].copy_from_slice(&correction.rotate(d).to_array());
             for ch in 0..3 {
                 ray[6 + ch] = px[ch] as f32 * (1.0 / 255.0);
             }
+            ray[9..12].copy_from_slice(&d.to_array());
             self.ray_frames[r] = slot as u32;
         }
         Ok(())
@@ -606,6 +622,7 @@ impl<'a> Trainer<'a> {
             embedding: Embedding::PerFrame(self.frame_params),
             step: self.state.step,
             jitter: true,
+            fit_embedding: false,
         };
         let rays_per_chunk = self.config.rays_per_chunk();
         for (i, chunk) in self.chunks.iter_mut().enumerate() {
@@ -786,6 +803,7 @@ impl<'a> Trainer<'a> {
             embedding: Embedding::Fixed(&[]),
             step: self.state.refreshes,
             jitter: true,
+            fit_embedding: false,
         };
         let cells = c.occupancy_cells();
         let per_chunk = cells.div_ceil(self.chunks.len());
@@ -825,6 +843,112 @@ impl<'a> Trainer<'a> {
             *word = bits;
         }
         self.state.refreshes += 1;
+    }
+
+    /// Fit an appearance embedding to one image with the field frozen (the paper's and
+    /// K-Planes' evaluation): `steps` Adam steps, each on a batch of rays through the pixels
+    /// in columns `columns.0..columns.1` (the left half, in the paper). `embedding` holds the
+    /// starting point (the mean training embedding) and receives the result. Returns the
+    /// last step's mean squared error.
+    #[allow(clippy::too_many_arguments)]
+    pub fn fit_embedding<E: Executor>(
+        &mut self,
+        executor: &E,
+        camera: &Camera,
+        pose: &Pose,
+        pixels: &[u8],
+        columns: (u32, u32),
+        steps: u32,
+        embedding: &mut [f32],
+    ) -> Result<f32, Error> {
+        let c = self.config;
+        let dim = c.embedding_dim as usize;
+        if embedding.len() != dim {
+            return Err(Error::BufferSize {
+                what: "embedding",
+                expected: dim,
+                got: embedding.len(),
+            });
+        }
+        if !camera.is_valid() || !pose.is_finite() {
+            return Err(Error::InvalidFrame { field: "camera" });
+        }
+        if pixels.len() != camera.pixel_count() * 3 {
+            return Err(Error::BufferSize {
+                what: "pixels",
+                expected: camera.pixel_count() * 3,
+                got: pixels.len(),
+            });
+        }
+        let (x0, x1) = (
+            columns.0.min(camera.width as u32),
+            columns.1.min(camera.width as u32),
+        );
+        if x0 >= x1 {
+            return Err(Error::InvalidFrame { field: "columns" });
+        }
+        let (mut m, mut v) = ([0.0f32; 128], [0.0f32; 128]);
+        let mut mse = 0.0;
+        let rays_per_chunk = c.rays_per_chunk();
+        for step in 0..steps {
+            for r in 0..c.rays_per_batch as usize {
+                let bits = rng::hash(c.seed, stream::FIT, step as u64, r as u64);
+                let i = x0 + rng::below(bits, x1 - x0);
+                let j = rng::below(bits.rotate_right(32), camera.height as u32);
+                let (o, d) = Self::pixel_ray(camera, pose, i, j);
+                let ray = &mut self.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
+                ray[..3].copy_from_slice(&o.to_array());
+                ray[3..6].copy_from_slice(&d.to_array());
+                let p = (j as usize * camera.width as usize + i as usize) * 3;
+                for ch in 0..3 {
+                    ray[6 + ch] = pixels[p + ch] as f32 * (1.0 / 255.0);
+                }
+                ray[9..12].copy_from_slice(&d.to_array());
+            }
+            for (i, chunk) in self.chunks.iter_mut().enumerate() {
+                chunk.first_ray = i * rays_per_chunk;
+                chunk.ray_count = rays_per_chunk;
+            }
+            let shared = Shared {
+                config: &self.config,
+                geometry: &self.geometry,
+                layout: &self.layout,
+                aabb: self.aabb,
+                step_size: self.step_size,
+                planes: self.planes,
+                mlp: self.mlp,
+                occupancy: OccupancyView {
+                    bits: self.occupancy_bits,
+                    res: c.occupancy_res as usize,
+                    aabb: self.aabb,
+                },
+                rays: self.rays,
+                ray_frames: self.ray_frames,
+                embedding: Embedding::Fixed(embedding),
+                step,
+                jitter: true,
+                fit_embedding: true,
+            };
+            executor.for_each(&mut self.chunks, |chunk| chunk.train(&shared));
+            let mut grad = [0.0f32; 128];
+            let (mut squared_error, mut rays) = (0.0f32, 0u32);
+            for chunk in self.chunks.iter_mut() {
+                for (g, d) in grad.iter_mut().zip(chunk.frame_grads[..dim].iter_mut()) {
+                    *g += *d;
+                    *d = 0.0;
+                }
+                chunk.mlp_grads.fill(0.0);
+                squared_error += chunk.report.squared_error;
+                rays += chunk.report.rays;
+            }
+            mse = squared_error / (3 * rays.max(1)) as f32;
+            if !(mse.is_finite() && grad[..dim].iter().all(|g| g.is_finite())) {
+                continue;
+            }
+            let adam = AdamStep::new(&c, c.learning_rate, step + 1);
+            adam.apply(embedding, &grad[..dim], &mut m[..dim], &mut v[..dim]);
+        }
+        Ok(mse)
     }
 
     /// Render the image of `camera` at `pose` with a given appearance embedding (length
@@ -894,6 +1018,7 @@ impl<'a> Trainer<'a> {
                 embedding: Embedding::Fixed(embedding),
                 step: 0,
                 jitter: false,
+                fit_embedding: false,
             };
             let out_batch = &mut out[first * 3..(first + count) * 3];
             let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> =
@@ -1119,7 +1244,13 @@ impl Chunk<'_> {
                 &mut self.d_rgb[start..end],
             );
         }
+        if c.pose_correction {
+            self.ray_grads.fill(0.0);
+        }
         self.backward(shared, n);
+        if c.pose_correction {
+            self.fold_ray_gradients(shared, rays);
+        }
         self.report = ChunkReport {
             squared_error,
             rays: rays as u32,
@@ -1127,6 +1258,32 @@ impl Chunk<'_> {
             marched: marched as u32,
             dropped: (self.ray_count - rays) as u32,
         };
+    }
+
+    /// Move each ray's origin and direction gradients to its frame's pose correction.
+    fn fold_ray_gradients(&mut self, shared: &Shared<'_>, rays: usize) {
+        let c = shared.config;
+        let n = c.frame_params();
+        let dim = c.embedding_dim as usize;
+        let Embedding::PerFrame(params) = shared.embedding else {
+            return;
+        };
+        for r in 0..rays {
+            let ray = self.first_ray + r;
+            let slot = shared.ray_frames[ray] as usize;
+            let g = &self.ray_grads[r * 6..r * 6 + 6];
+            let correction = PoseCorrection::from_params(&params[slot * n + dim..(slot + 1) * n]);
+            let label = &shared.rays[ray * RAY_FLOATS + 9..ray * RAY_FLOATS + 12];
+            let d_v = correction.rotation_vjp(
+                Vec3::new(label[0], label[1], label[2]),
+                Vec3::new(g[3], g[4], g[5]),
+            );
+            let dst = &mut self.frame_grads[slot * n + dim..(slot + 1) * n];
+            for a in 0..3 {
+                dst[a] += g[a];
+                dst[3 + a] += d_v[a];
+            }
+        }
     }
 
     /// Recompute the field for samples `0..n` mini-batch by mini-batch and push the
@@ -1218,6 +1375,14 @@ impl Chunk<'_> {
             for gi in 0..geo_len {
                 grad.density_out[1 + gi] = grad.colour_in[sh_len + gi];
             }
+            if shared.fit_embedding {
+                for (k, d) in self.frame_grads[..dim].iter_mut().enumerate() {
+                    for l in 0..lanes {
+                        *d += grad.colour_in[sh_len + geo_len + k][l];
+                    }
+                }
+                continue;
+            }
             if dim > 0 && matches!(shared.embedding, Embedding::PerFrame(_)) {
                 for l in 0..lanes {
                     let slot = shared.ray_frames[self.sample_ray[base + l] as usize] as usize;
@@ -1254,23 +1419,47 @@ impl Chunk<'_> {
                 touched: self.touched,
             };
             let mut d_feat = [0.0f32; 4 * 64];
+            let pose = c.pose_correction;
+            let extent = shared.aabb.max - shared.aabb.min;
             for l in 0..lanes {
                 for k in 0..features {
                     d_feat[k] = grad.feats[k][l];
                 }
-                let u = shared
-                    .aabb
-                    .normalise(Vec3::from_array(self.positions[base + l]));
+                let x = Vec3::from_array(self.positions[base + l]);
+                let u = shared.aabb.normalise(x);
                 let values = &self.plane_values[l * 3 * features..(l + 1) * 3 * features];
-                field::planes_backward(
+                let d_u = field::planes_backward(
                     shared.planes,
                     shared.geometry,
                     u,
                     values,
                     &d_feat[..features],
                     &mut sink,
-                    false,
+                    pose,
                 );
+                if pose {
+                    // x = o + t d: d loss / d o = d loss / d x, d loss / d d = t d loss / d x,
+                    // plus the view encoding's gradient.
+                    let r = self.sample_ray[base + l] as usize;
+                    let (o, d) = Self::ray(shared, r);
+                    let d_x = Vec3::from_array(d_u) / extent;
+                    let mut d_sh = [0.0f32; 16];
+                    for k in 0..sh_len {
+                        d_sh[k] = grad.colour_in[k][l];
+                    }
+                    let d_view = Vec3::from_array(field::sh_backward(
+                        c.sh_degree as usize,
+                        d.to_array(),
+                        &d_sh[..sh_len],
+                    ));
+                    let d_d = d_x * (x - o).dot(d) + d_view;
+                    let g =
+                        &mut self.ray_grads[(r - self.first_ray) * 6..(r - self.first_ray) * 6 + 6];
+                    for a in 0..3 {
+                        g[a] += d_x[a];
+                        g[3 + a] += d_d[a];
+                    }
+                }
             }
         }
     }
