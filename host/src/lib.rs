@@ -6,6 +6,7 @@ pub mod error;
 pub mod io;
 pub mod metrics;
 pub mod nerf_formats;
+pub mod report;
 pub mod sim;
 pub mod speedplus;
 pub mod train;
