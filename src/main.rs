@@ -1,6 +1,7 @@
 //! orbit-nerf: train, evaluate and render K-Planes radiance fields of spacecraft (and of
 //! NeRF scenes), benchmark the core, and simulate datasets.
 
+mod ablate;
 mod simulate;
 
 use clap::{Args, Parser, Subcommand};
@@ -37,6 +38,8 @@ enum Command {
     Demo(DemoArgs),
     /// Render a spacecraft scene into a SPEED+-format dataset.
     Simulate(simulate::SimulateArgs),
+    /// The paper's ablation (baseline, + appearance, + pose) or its pose-noise sweep.
+    Ablate(ablate::AblateArgs),
 }
 
 #[derive(Args, Clone)]
@@ -165,6 +168,7 @@ fn main() {
         Command::Bench(args) => run_bench(&args),
         Command::Demo(args) => run_demo(&args),
         Command::Simulate(args) => simulate::run(&args),
+        Command::Ablate(args) => ablate::run(&args),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -1,5 +1,6 @@
 //! orbit-nerf-host: the std harness around the no_std core.
 
+pub mod ablation;
 pub mod checkpoint;
 pub mod dataset;
 pub mod error;
