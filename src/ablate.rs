@@ -55,21 +55,22 @@ const NOISE_LEVELS: [(f32, f32); 5] = [
 ];
 
 /// Simulate `scene` (with optional label noise) into `out` and load it with its exact poses.
-fn simulated(
-    args: &AblateArgs,
+pub fn simulated(
     scene: &str,
+    frames: u32,
+    size: u16,
     noise: Option<LabelNoise>,
     out: &Path,
 ) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let mut scene = Scene::load(scene)?;
-    scene.spec.frames = args.frames;
-    scene.spec.size = args.size;
+    scene.spec.frames = frames;
+    scene.spec.size = size;
     if let Some(noise) = noise {
         scene.spec.effects.label_noise =
             (noise.rotation_deg > 0.0 || noise.translation_m > 0.0).then_some(noise);
     }
     sim::simulate(&scene, out, &|| {})?;
-    load(out, args.size)
+    load(out, size)
 }
 
 fn load(path: &Path, size: u16) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
@@ -107,7 +108,13 @@ fn base_config(args: &AblateArgs) -> Config {
 fn ablate(args: &AblateArgs) -> Fallible<()> {
     let (dataset, truth) = match &args.data {
         Some(path) => load(path, args.size)?,
-        None => simulated(args, &args.scene, None, &args.out.join("data"))?,
+        None => simulated(
+            &args.scene,
+            args.frames,
+            args.size,
+            None,
+            &args.out.join("data"),
+        )?,
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
     let base = base_config(args);
@@ -128,6 +135,7 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             variant,
             args.threads,
             args.fit_steps,
+            &mut |_| {},
         )?;
         println!(
             "  {:.1} s, held-out PSNR {:.2} dB",
@@ -204,8 +212,9 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
             translation_m,
         };
         let (dataset, truth) = simulated(
-            args,
             "synthetic",
+            args.frames,
+            args.size,
             Some(noise),
             &args.out.join(format!("noise_{i}")),
         )?;
@@ -225,6 +234,7 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
                 variant,
                 args.threads,
                 args.fit_steps,
+                &mut |_| {},
             )?;
             println!(
                 "  {}: SSIM {:.4}, rotation error {:.3} deg",

@@ -8,7 +8,7 @@ use crate::error::{HostError, Result};
 use crate::report::{self, PoseErrors, ViewMetrics};
 use crate::train::{self, RayonExecutor};
 use orbit_nerf_core::glam::{Mat3, Vec3};
-use orbit_nerf_core::{Config, MemoryPlan, Pose, PoseCorrection, Trainer};
+use orbit_nerf_core::{Config, MemoryPlan, Pose, PoseCorrection, StepReport, Trainer};
 use std::time::Instant;
 
 /// Which of the method's additions a model uses.
@@ -66,8 +66,9 @@ pub fn corrected_pose(label: &Pose, correction: &PoseCorrection) -> Pose {
     }
 }
 
-/// Train one variant of `base` on the `train` views for `base.steps` steps and evaluate it on
-/// the `test` views (fitting held-out embeddings for `fit_steps` steps).
+/// Train one variant of `base` on the `train` views for `base.steps` steps (calling
+/// `on_step` after each) and evaluate it on the `test` views (fitting held-out embeddings
+/// for `fit_steps` steps).
 #[allow(clippy::too_many_arguments)]
 pub fn run_variant(
     dataset: &Dataset,
@@ -78,6 +79,7 @@ pub fn run_variant(
     variant: Variant,
     threads: usize,
     fit_steps: u32,
+    on_step: &mut dyn FnMut(&StepReport),
 ) -> Result<VariantResult> {
     let mut config = train::fit_config(base, dataset, train_idx.len());
     config.embedding_dim = variant.embedding_dim;
@@ -90,9 +92,10 @@ pub fn run_variant(
     train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
     let start = Instant::now();
     for _ in 0..config.steps {
-        trainer
+        let report = trainer
             .step(&executor)
             .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
+        on_step(&report);
     }
     let train_seconds = start.elapsed().as_secs_f64();
     let scores = train::evaluate(&mut trainer, &executor, dataset, test_idx, fit_steps, None)?;

@@ -50,6 +50,9 @@ pub struct StepReport {
     pub skipped: bool,
 }
 
+/// Adam learning rate of `fit_embedding` (only a few dozen steps, on one vector).
+const FIT_LEARNING_RATE: f32 = 0.05;
+
 /// Counters that belong to the training state (and to checkpoints).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
@@ -952,7 +955,7 @@ impl<'a> Trainer<'a> {
             if !(mse.is_finite() && grad[..dim].iter().all(|g| g.is_finite())) {
                 continue;
             }
-            let adam = AdamStep::new(&c, c.learning_rate, step + 1);
+            let adam = AdamStep::new(&c, FIT_LEARNING_RATE, step + 1);
             adam.apply(embedding, &grad[..dim], &mut m[..dim], &mut v[..dim]);
         }
         Ok(mse)
