@@ -25,9 +25,12 @@ pub struct AblateArgs {
     /// Image size in pixels.
     #[arg(long, default_value_t = 128)]
     pub size: u16,
-    /// Training steps of every model (the same budget for all).
-    #[arg(long, default_value_t = 2000)]
+    /// Training steps of every model (the same budget for all; the default config's).
+    #[arg(long, default_value_t = Config::DEFAULT.steps)]
     pub steps: u32,
+    /// Model and training config (TOML; default: the built-in default config).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// Run the pose-noise sweep on the `synthetic` preset instead.
     #[arg(long)]
     pub pose_noise: bool,
@@ -98,11 +101,14 @@ pub fn run(args: &AblateArgs) -> Fallible<()> {
     }
 }
 
-fn base_config(args: &AblateArgs) -> Config {
-    let mut config = Config::DEFAULT;
+fn base_config(args: &AblateArgs) -> Fallible<Config> {
+    let mut config = match &args.config {
+        Some(path) => orbit_nerf_host::train::read_config(path)?,
+        None => Config::DEFAULT,
+    };
     config.steps = args.steps;
     config.warmup_steps = config.warmup_steps.min(args.steps);
-    config
+    Ok(config)
 }
 
 fn ablate(args: &AblateArgs) -> Fallible<()> {
@@ -117,7 +123,7 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
         )?,
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
-    let base = base_config(args);
+    let base = base_config(args)?;
     let mut results: Vec<VariantResult> = Vec::new();
     for variant in [BASELINE, APPEARANCE, APPEARANCE_POSE] {
         println!(
@@ -202,7 +208,7 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
 }
 
 fn sweep(args: &AblateArgs) -> Fallible<()> {
-    let base = base_config(args);
+    let base = base_config(args)?;
     let mut rows = Vec::new();
     let (mut ssim_ours, mut ssim_pose, mut rot_labels, mut rot_pose) =
         (vec![], vec![], vec![], vec![]);

@@ -20,7 +20,7 @@ pub struct Variant {
 }
 
 /// Appearance embedding size of the method's models.
-pub const EMBEDDING_DIM: u16 = 16;
+pub const EMBEDDING_DIM: u16 = 32;
 
 pub const BASELINE: Variant = Variant {
     name: "baseline",
