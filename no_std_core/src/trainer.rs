@@ -513,6 +513,36 @@ impl<'a> Trainer<'a> {
         }
     }
 
+    /// The read-only view of the model the chunks work with.
+    fn shared<'s>(
+        &'s self,
+        embedding: Embedding<'s>,
+        step: u32,
+        jitter: bool,
+        fit_embedding: bool,
+    ) -> Shared<'s> {
+        Shared {
+            config: &self.config,
+            geometry: &self.geometry,
+            layout: &self.layout,
+            aabb: self.aabb,
+            step_size: self.step_size,
+            planes: self.planes,
+            mlp: self.mlp,
+            occupancy: OccupancyView {
+                bits: self.occupancy_bits,
+                res: self.config.occupancy_res as usize,
+                aabb: self.aabb,
+            },
+            rays: self.rays,
+            ray_frames: self.ray_frames,
+            embedding,
+            step,
+            jitter,
+            fit_embedding,
+        }
+    }
+
     /// Put a frame into `slot`. Its embedding starts at the mean of the other frames'
     /// embeddings, its pose correction at zero, and its optimizer moments are cleared.
     pub fn set_frame(
@@ -619,32 +649,21 @@ impl<'a> Trainer<'a> {
     /// gradients in the chunks' buffers.
     fn forward_backward<E: Executor>(&mut self, executor: &E) -> Result<(), Error> {
         self.sample_rays()?;
-        let shared = Shared {
-            config: &self.config,
-            geometry: &self.geometry,
-            layout: &self.layout,
-            aabb: self.aabb,
-            step_size: self.step_size,
-            planes: self.planes,
-            mlp: self.mlp,
-            occupancy: OccupancyView {
-                bits: self.occupancy_bits,
-                res: self.config.occupancy_res as usize,
-                aabb: self.aabb,
-            },
-            rays: self.rays,
-            ray_frames: self.ray_frames,
-            embedding: Embedding::PerFrame(self.frame_params),
-            step: self.state.step,
-            jitter: true,
-            fit_embedding: false,
-        };
         let rays_per_chunk = self.config.rays_per_chunk();
-        for (i, chunk) in self.chunks.iter_mut().enumerate() {
+        // The chunks are moved out while the shared view borrows the rest of the trainer.
+        let mut chunks = core::mem::take(&mut self.chunks);
+        for (i, chunk) in chunks.iter_mut().enumerate() {
             chunk.first_ray = i * rays_per_chunk;
             chunk.ray_count = rays_per_chunk;
         }
-        executor.for_each(&mut self.chunks, |chunk| chunk.train(&shared));
+        let shared = self.shared(
+            Embedding::PerFrame(self.frame_params),
+            self.state.step,
+            true,
+            false,
+        );
+        executor.for_each(&mut chunks, |chunk| chunk.train(&shared));
+        self.chunks = chunks;
         Ok(())
     }
 
@@ -795,42 +814,26 @@ impl<'a> Trainer<'a> {
     /// threshold as occupied.
     pub fn refresh_occupancy<E: Executor>(&mut self, executor: &E) {
         let c = self.config;
-        let shared = Shared {
-            config: &self.config,
-            geometry: &self.geometry,
-            layout: &self.layout,
-            aabb: self.aabb,
-            step_size: self.step_size,
-            planes: self.planes,
-            mlp: self.mlp,
-            occupancy: OccupancyView {
-                bits: &[],
-                res: c.occupancy_res as usize,
-                aabb: self.aabb,
-            },
-            rays: &[],
-            ray_frames: &[],
-            embedding: Embedding::Fixed(&[]),
-            step: self.state.refreshes,
-            jitter: true,
-            fit_embedding: false,
-        };
         let cells = c.occupancy_cells();
-        let per_chunk = cells.div_ceil(self.chunks.len());
+        let mut chunks = core::mem::take(&mut self.chunks);
+        let density = core::mem::take(&mut self.occupancy_density);
+        let per_chunk = cells.div_ceil(chunks.len());
         let mut jobs: heapless::Vec<(usize, &mut [f32], &mut Chunk<'a>), MAX_CHUNKS> =
             heapless::Vec::new();
-        for (i, (part, chunk)) in self
-            .occupancy_density
+        for (i, (part, chunk)) in density
             .chunks_mut(per_chunk)
-            .zip(self.chunks.iter_mut())
+            .zip(chunks.iter_mut())
             .enumerate()
         {
             let _ = jobs.push((i * per_chunk, part, chunk));
         }
+        let shared = self.shared(Embedding::Fixed(&[]), self.state.refreshes, true, false);
         executor.for_each(&mut jobs, |(first_cell, part, chunk)| {
             chunk.refresh_cells(&shared, *first_cell, part)
         });
         drop(jobs);
+        self.chunks = chunks;
+        self.occupancy_density = density;
         // As in nerfacc, the threshold never exceeds the mean cell opacity, so a field whose
         // densities are all still low (early training) is not culled to nothing.
         let sum = self
@@ -915,31 +918,14 @@ impl<'a> Trainer<'a> {
                 }
                 ray[9..12].copy_from_slice(&d.to_array());
             }
-            for (i, chunk) in self.chunks.iter_mut().enumerate() {
+            let mut chunks = core::mem::take(&mut self.chunks);
+            for (i, chunk) in chunks.iter_mut().enumerate() {
                 chunk.first_ray = i * rays_per_chunk;
                 chunk.ray_count = rays_per_chunk;
             }
-            let shared = Shared {
-                config: &self.config,
-                geometry: &self.geometry,
-                layout: &self.layout,
-                aabb: self.aabb,
-                step_size: self.step_size,
-                planes: self.planes,
-                mlp: self.mlp,
-                occupancy: OccupancyView {
-                    bits: self.occupancy_bits,
-                    res: c.occupancy_res as usize,
-                    aabb: self.aabb,
-                },
-                rays: self.rays,
-                ray_frames: self.ray_frames,
-                embedding: Embedding::Fixed(embedding),
-                step,
-                jitter: true,
-                fit_embedding: true,
-            };
-            executor.for_each(&mut self.chunks, |chunk| chunk.train(&shared));
+            let shared = self.shared(Embedding::Fixed(embedding), step, true, true);
+            executor.for_each(&mut chunks, |chunk| chunk.train(&shared));
+            self.chunks = chunks;
             let mut grad = [0.0f32; 128];
             let (mut squared_error, mut rays) = (0.0f32, 0u32);
             for chunk in self.chunks.iter_mut() {
@@ -1005,45 +991,29 @@ impl<'a> Trainer<'a> {
                 self.rays[r * RAY_FLOATS..r * RAY_FLOATS + 3].copy_from_slice(&o.to_array());
                 self.rays[r * RAY_FLOATS + 3..r * RAY_FLOATS + 6].copy_from_slice(&d.to_array());
             }
-            let per_chunk = count.div_ceil(self.chunks.len());
-            for (i, chunk) in self.chunks.iter_mut().enumerate() {
+            let mut chunks = core::mem::take(&mut self.chunks);
+            let per_chunk = count.div_ceil(chunks.len());
+            for (i, chunk) in chunks.iter_mut().enumerate() {
                 chunk.first_ray = (i * per_chunk).min(count);
                 chunk.ray_count = per_chunk.min(count - chunk.first_ray);
             }
-            let shared = Shared {
-                config: &self.config,
-                geometry: &self.geometry,
-                layout: &self.layout,
-                aabb: self.aabb,
-                step_size: self.step_size,
-                planes: self.planes,
-                mlp: self.mlp,
-                occupancy: OccupancyView {
-                    bits: self.occupancy_bits,
-                    res: c.occupancy_res as usize,
-                    aabb: self.aabb,
-                },
-                rays: self.rays,
-                ray_frames: self.ray_frames,
-                embedding: Embedding::Fixed(embedding),
-                step: 0,
-                jitter: false,
-                fit_embedding: false,
-            };
             let out_batch = &mut out[first * 3..(first + count) * 3];
             let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> =
                 heapless::Vec::new();
             let mut rest = out_batch;
-            for chunk in self.chunks.iter_mut() {
+            for chunk in chunks.iter_mut() {
                 let (mine, tail) = rest.split_at_mut(chunk.ray_count * 3);
                 rest = tail;
                 let _ = jobs.push((chunk, mine));
             }
+            let shared = self.shared(Embedding::Fixed(embedding), 0, false, false);
             executor.for_each(&mut jobs, |(chunk, out)| chunk.render(&shared, out));
             samples += jobs
                 .iter()
                 .map(|(chunk, _)| chunk.report.samples as u64)
                 .sum::<u64>();
+            drop(jobs);
+            self.chunks = chunks;
         }
         Ok(samples as f32 / pixels as f32)
     }
