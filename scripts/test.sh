@@ -1,18 +1,26 @@
 #!/usr/bin/env bash
 # Every test of the project: the workspace's unit and end-to-end tests, then the core's
 # cross-compilation for the embedded targets (with and without defmt). Installs the targets.
+# Ends with one line counting everything that passed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 targets=(thumbv7em-none-eabihf aarch64-unknown-none riscv32imafc-unknown-none-elf)
 rustup target add "${targets[@]}"
 
-cargo test --workspace
+log=$(mktemp)
+trap 'rm -f "$log"' EXIT
+cargo test --workspace 2>&1 | tee "$log"
+passed=$(awk '/^test result: / { for (i = 1; i < NF; i++) if ($(i + 1) ~ /^passed/) n += $i } END { print n + 0 }' "$log")
 
+builds=0
 for target in "${targets[@]}"; do
     echo "cross-build: orbit-nerf-core for $target"
     cargo build -p orbit-nerf-core --release --target "$target"
+    builds=$((builds + 1))
 done
 echo "cross-build: orbit-nerf-core for thumbv7em-none-eabihf with defmt"
 cargo build -p orbit-nerf-core --release --target thumbv7em-none-eabihf --features defmt
-echo "cross-builds: 4 passed, 0 failed"
+builds=$((builds + 1))
+# Tests and cross-builds together (a failure stops the script before this line).
+echo "summary: $((passed + builds)) passed, 0 failed"
