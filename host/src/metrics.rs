@@ -899,7 +899,7 @@ fn marziliano_widths(gray: &Plane, edges: &[bool]) -> Vec<f64> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use std::path::{Path, PathBuf};
 
@@ -907,8 +907,9 @@ mod tests {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/metric_fixtures")
     }
 
-    /// Binary PGM (P5, maxval < 256) reader: width, height, pixels.
-    fn read_pgm(path: &Path) -> (usize, usize, Vec<u8>) {
+    /// Binary PGM (P5, maxval < 256) reader: width, height, pixels. Shared with the report
+    /// module's tests, which score the same fixtures.
+    pub(crate) fn read_pgm(path: &Path) -> (usize, usize, Vec<u8>) {
         let bytes = std::fs::read(path).unwrap();
         let mut fields = Vec::new();
         let mut pos = 0;

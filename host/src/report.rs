@@ -962,27 +962,6 @@ mod tests {
         );
     }
 
-    /// Binary PGM (P5, 8-bit) reader for the metric fixtures.
-    fn read_pgm(path: &Path) -> (usize, usize, Vec<u8>) {
-        let bytes = std::fs::read(path).unwrap();
-        let mut fields = Vec::new();
-        let mut pos = 0;
-        while fields.len() < 4 {
-            while bytes[pos].is_ascii_whitespace() {
-                pos += 1;
-            }
-            let start = pos;
-            while !bytes[pos].is_ascii_whitespace() {
-                pos += 1;
-            }
-            fields.push(std::str::from_utf8(&bytes[start..pos]).unwrap().to_string());
-        }
-        assert_eq!(fields[0], "P5", "{}", path.display());
-        assert_eq!(fields[3], "255", "{}", path.display());
-        let (w, h) = (fields[1].parse().unwrap(), fields[2].parse().unwrap());
-        (w, h, bytes[pos + 1..pos + 1 + w * h].to_vec())
-    }
-
     #[test]
     fn blurred_render_scores_lower_ssim_and_higher_jnb() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/metric_fixtures");
@@ -1003,8 +982,8 @@ mod tests {
                     .to_string_lossy()
                     .replace("_gray.pgm", "_blur1.pgm"),
             );
-            let (w, h, sharp) = read_pgm(&sharp_path);
-            let (bw, bh, blurred) = read_pgm(&blurred_path);
+            let (w, h, sharp) = crate::metrics::tests::read_pgm(&sharp_path);
+            let (bw, bh, blurred) = crate::metrics::tests::read_pgm(&blurred_path);
             assert_eq!((bw, bh), (w, h));
             let truth = gray_to_rgb(&sharp);
             let sharp_scores = score_view(&to_unit(&truth), &truth, w, h).unwrap();
