@@ -305,6 +305,14 @@ fn bad_frames_are_rejected_and_leave_the_slot_unchanged() {
     for _ in 0..20 {
         assert!(!trainer.step(&Sequential).unwrap().skipped);
     }
+    // A cleared slot is no longer sampled; clearing an empty or missing slot is a no-op.
+    trainer.clear_frame(0);
+    trainer.clear_frame(31);
+    trainer.clear_frame(1000);
+    assert_eq!(trainer.frames().len(), 1);
+    assert_eq!(trainer.frames().occupied_slot(0), Some(1));
+    assert!(trainer.frames().pixels(0).is_none());
+    assert!(!trainer.step(&Sequential).unwrap().skipped);
 }
 
 #[test]

@@ -151,20 +151,6 @@ pub fn load_frames<'f>(
     Ok(())
 }
 
-/// Render a frame's view (with the given embedding) as RGB f32 in [0, 1].
-pub fn render_frame<E: Executor>(
-    trainer: &mut Trainer<'_>,
-    executor: &E,
-    frame: &Frame,
-    embedding: &[f32],
-) -> Result<Vec<f32>> {
-    let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
-    trainer
-        .render(executor, &frame.camera, &frame.pose, embedding, &mut out)
-        .map_err(|e| core_error(Path::new(&frame.name), e))?;
-    Ok(out)
-}
-
 /// f32 RGB in [0, 1] to RGB8.
 pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
     image

@@ -1320,36 +1320,33 @@ impl Chunk<'_> {
                 layer(COLOUR_HIDDEN2),
                 layer(COLOUR_HIDDEN1),
             );
-            let (w, dw) = split_layer(p, g, l_out);
-            field::layer_backward(
-                w,
+            backward_layer(
+                p,
+                g,
+                l_out,
                 act.colour2,
                 grad.rgb,
                 Some(grad.colour2),
-                dw.0,
-                dw.1,
                 self.lane_major,
             );
             field::relu_backward(act.colour2, grad.colour2);
-            let (w, dw) = split_layer(p, g, l2);
-            field::layer_backward(
-                w,
+            backward_layer(
+                p,
+                g,
+                l2,
                 act.colour1,
                 grad.colour2,
                 Some(grad.colour1),
-                dw.0,
-                dw.1,
                 self.lane_major,
             );
             field::relu_backward(act.colour1, grad.colour1);
-            let (w, dw) = split_layer(p, g, l1);
-            field::layer_backward(
-                w,
+            backward_layer(
+                p,
+                g,
+                l1,
                 act.colour_in,
                 grad.colour1,
                 Some(grad.colour_in),
-                dw.0,
-                dw.1,
                 self.lane_major,
             );
             for gi in 0..geo_len {
@@ -1372,25 +1369,23 @@ impl Chunk<'_> {
                     }
                 }
             }
-            let (w, dw) = split_layer(p, g, layout.layers[DENSITY_OUT]);
-            field::layer_backward(
-                w,
+            backward_layer(
+                p,
+                g,
+                layout.layers[DENSITY_OUT],
                 act.hidden,
                 grad.density_out,
                 Some(grad.hidden),
-                dw.0,
-                dw.1,
                 self.lane_major,
             );
             field::relu_backward(act.hidden, grad.hidden);
-            let (w, dw) = split_layer(p, g, layout.layers[DENSITY_HIDDEN]);
-            field::layer_backward(
-                w,
+            backward_layer(
+                p,
+                g,
+                layout.layers[DENSITY_HIDDEN],
                 act.feats,
                 grad.hidden,
                 Some(grad.feats),
-                dw.0,
-                dw.1,
                 self.lane_major,
             );
 
@@ -1598,14 +1593,19 @@ fn colour_rows(
     }
 }
 
-/// A layer's weights, and its weight and bias gradients.
-fn split_layer<'p, 'g>(
-    params: &'p [f32],
-    grads: &'g mut [f32],
+/// Backward of one MLP layer: its slices of the parameters and of the chunk's gradients,
+/// then `field::layer_backward`.
+fn backward_layer(
+    params: &[f32],
+    grads: &mut [f32],
     l: crate::config::Layer,
-) -> (&'p [f32], (&'g mut [f32], &'g mut [f32])) {
-    let (weights, rest) = grads[l.weights..l.biases + l.outputs].split_at_mut(l.biases - l.weights);
-    (&params[l.weights..l.biases], (weights, rest))
+    x: &[Row],
+    dy: &[Row],
+    dx: Option<&mut [Row]>,
+    lane_major: &mut [f32],
+) {
+    let (dw, db) = grads[l.weights..l.biases + l.outputs].split_at_mut(l.biases - l.weights);
+    field::layer_backward(&params[l.weights..l.biases], x, dy, dx, dw, db, lane_major);
 }
 
 #[cfg(test)]
