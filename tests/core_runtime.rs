@@ -4,7 +4,9 @@
 
 use orbit_nerf_core::config::PART_ALIGN;
 use orbit_nerf_core::glam::{Mat3, Vec3};
-use orbit_nerf_core::{Camera, Config, Error, MemoryPlan, Pose, Sequential, Trainer};
+use orbit_nerf_core::{
+    Camera, Config, Error, Ingested, MemoryPlan, Pose, Replacement, Sequential, Trainer,
+};
 use orbit_nerf_host::dataset::{self, Dataset};
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -384,6 +386,44 @@ fn a_training_step_allocates_nothing() {
         trainer.state().refreshes >= 2,
         "the occupancy refresh ran inside the armed window"
     );
+}
+
+#[test]
+fn streaming_frames_through_a_full_store_allocates_nothing() {
+    for replacement in [Replacement::Fifo, Replacement::Novelty] {
+        let mut config = tiny_config();
+        config.max_frames = 4;
+        config.replacement = replacement;
+        let plan = MemoryPlan::new(&config);
+        let mut arena = vec![0u8; plan.total];
+        let mut trainer = Trainer::new(config, &mut arena).unwrap();
+        let pixels: Vec<u8> = (0..16 * 16 * 3).map(|i| (i % 251) as u8).collect();
+        let poses: Vec<Pose> = (0..24)
+            .map(|k| {
+                let rotation = Mat3::from_rotation_y(k as f32 * 0.3);
+                Pose {
+                    rotation,
+                    center: rotation * Vec3::new(0.0, 0.0, -4.0),
+                }
+            })
+            .collect();
+        ALLOCATIONS.store(0, Ordering::SeqCst);
+        ARMED.with(|a| a.set(true));
+        let mut stored = 0;
+        for (arrival, pose) in poses.iter().enumerate() {
+            let ingested = trainer.ingest_frame(arrival as u32, camera(16), *pose, &pixels, None);
+            stored += matches!(ingested, Ok(Ingested::Stored { .. })) as usize;
+            trainer.step(&Sequential).unwrap();
+        }
+        ARMED.with(|a| a.set(false));
+        assert_eq!(
+            ALLOCATIONS.load(Ordering::SeqCst),
+            0,
+            "{replacement:?}: ingesting frames allocated"
+        );
+        assert!(stored >= 4, "{replacement:?}: {stored} frames stored");
+        assert_eq!(trainer.frames().len(), 4);
+    }
 }
 
 #[test]

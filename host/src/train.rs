@@ -4,7 +4,7 @@
 use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
-use orbit_nerf_core::{Config, Executor, TexelUpdate, Trainer};
+use orbit_nerf_core::{Config, Executor, Replacement, TexelUpdate, Trainer};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -35,6 +35,8 @@ pub struct ConfigDef {
     pub max_samples_per_ray: u16,
     pub min_transmittance: f32,
     pub max_frames: u16,
+    #[serde(with = "ReplacementDef")]
+    pub replacement: Replacement,
     pub max_pixels_per_frame: u32,
     pub rays_per_batch: u32,
     pub chunks: u8,
@@ -58,6 +60,13 @@ pub struct ConfigDef {
 pub enum TexelUpdateDef {
     MasterCopy,
     StochasticRounding,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "Replacement", rename_all = "snake_case")]
+pub enum ReplacementDef {
+    Fifo,
+    Novelty,
 }
 
 #[derive(Serialize, Deserialize)]

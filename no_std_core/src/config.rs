@@ -27,6 +27,18 @@ pub enum TexelUpdate {
     StochasticRounding,
 }
 
+/// Which frame a full store gives up when a frame streams in (`Trainer::ingest_frame`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Replacement {
+    /// Every frame is admitted and replaces the oldest one.
+    Fifo,
+    /// Reservoir sampling weighted by novelty: a frame is admitted with probability
+    /// `capacity / seen` scaled by how far it lies from the held frames (view direction and
+    /// brightness), and replaces the most redundant held frame (see `stream.rs`).
+    Novelty,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Config {
@@ -74,6 +86,8 @@ pub struct Config {
 
     // --- capacities ---
     pub max_frames: u16,
+    /// What a full frame store does with a streamed-in frame.
+    pub replacement: Replacement,
     /// Pixel capacity of one frame slot (width * height of the largest frame).
     pub max_pixels_per_frame: u32,
     /// Rays sampled per training step.
@@ -126,6 +140,7 @@ impl Config {
         max_samples_per_ray: 256,
         min_transmittance: 1e-4,
         max_frames: 128,
+        replacement: Replacement::Novelty,
         max_pixels_per_frame: 128 * 128,
         rays_per_batch: 4096,
         chunks: 4,

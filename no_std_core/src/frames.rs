@@ -21,6 +21,10 @@ pub struct FrameMeta {
     pub center: [f32; 3],
     pub has_mask: u32,
     pub occupied: u32,
+    /// Mean pixel value in [0, 1] (the illumination descriptor of the streaming policy).
+    pub brightness: f32,
+    /// Arrival number of the frame in a stream (0 for frames put in place directly).
+    pub arrival: u32,
 }
 
 impl FrameMeta {
@@ -93,19 +97,14 @@ impl<'a> FrameStore<'a> {
         self.masks.get(slot * self.max_pixels..)?.get(..n)
     }
 
-    /// Put a frame into `slot`, replacing what was there. The input is checked first; on error
-    /// the slot is unchanged.
-    pub fn set(
-        &mut self,
-        slot: usize,
-        camera: Camera,
-        pose: Pose,
+    /// Check a frame as `set` would, without storing it.
+    pub fn check(
+        &self,
+        camera: &Camera,
+        pose: &Pose,
         pixels: &[u8],
         mask: Option<&[u8]>,
     ) -> Result<(), Error> {
-        if slot >= self.capacity() {
-            return Err(Error::InvalidFrame { field: "slot" });
-        }
         if !camera.is_valid() {
             return Err(Error::InvalidFrame { field: "camera" });
         }
@@ -135,6 +134,24 @@ impl<'a> FrameStore<'a> {
                 field: "pose.rotation",
             });
         }
+        Ok(())
+    }
+
+    /// Put a frame into `slot`, replacing what was there. The input is checked first; on error
+    /// the slot is unchanged.
+    pub fn set(
+        &mut self,
+        slot: usize,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<(), Error> {
+        if slot >= self.capacity() {
+            return Err(Error::InvalidFrame { field: "slot" });
+        }
+        self.check(&camera, &pose, pixels, mask)?;
+        let n = camera.pixel_count();
         let base = slot * self.max_pixels;
         self.pixels[base * 3..base * 3 + n * 3].copy_from_slice(pixels);
         if let Some(mask) = mask {
@@ -151,6 +168,8 @@ impl<'a> FrameStore<'a> {
             center: pose.center.to_array(),
             has_mask: mask.is_some() as u32,
             occupied: 1,
+            brightness: mean_brightness(pixels),
+            arrival: 0,
         };
         self.rebuild_occupied();
         Ok(())
@@ -164,6 +183,13 @@ impl<'a> FrameStore<'a> {
         }
     }
 
+    /// Record the stream arrival number of an occupied slot's frame.
+    pub(crate) fn set_arrival(&mut self, slot: usize, arrival: u32) {
+        if let Some(m) = self.meta.get_mut(slot).filter(|m| m.occupied != 0) {
+            m.arrival = arrival;
+        }
+    }
+
     pub(crate) fn rebuild_occupied(&mut self) {
         let mut len = 0;
         for (slot, m) in self.meta.iter().enumerate() {
@@ -174,4 +200,10 @@ impl<'a> FrameStore<'a> {
         }
         self.len = len;
     }
+}
+
+/// Mean of the 8-bit values in [0, 1] (0 for no pixels).
+pub fn mean_brightness(pixels: &[u8]) -> f32 {
+    let sum: u64 = pixels.iter().map(|&v| v as u64).sum();
+    sum as f32 / (255.0 * pixels.len().max(1) as f32)
 }

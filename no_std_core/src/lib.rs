@@ -15,11 +15,13 @@ pub mod frames;
 pub mod optim;
 pub mod render;
 pub mod rng;
+pub mod stream;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
-pub use config::{Config, MemoryPlan, TexelUpdate};
+pub use config::{Config, MemoryPlan, Replacement, TexelUpdate};
 pub use glam;
+pub use stream::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};
 
 /// Everything that can go wrong in the core; each names what was wrong.

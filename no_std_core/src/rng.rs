@@ -37,6 +37,7 @@ pub mod stream {
     pub const ROUNDING: u64 = 4;
     pub const INIT: u64 = 5;
     pub const FIT: u64 = 6;
+    pub const ADMIT: u64 = 7;
 }
 
 /// A small sequential generator for initialisation and tests.

@@ -9,10 +9,11 @@ use crate::config::{
     widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
-use crate::frames::{FrameMeta, FrameStore};
+use crate::frames::{FrameMeta, FrameStore, mean_brightness};
 use crate::optim::{self, AdamStep};
 use crate::render::{self, Aabb, OccupancyView};
 use crate::rng::{self, stream};
+use crate::stream::{self as admission, Descriptor, Ingested};
 use crate::{Camera, Error, Pose, PoseCorrection};
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -581,6 +582,32 @@ impl<'a> Trainer<'a> {
 
     pub fn clear_frame(&mut self, slot: usize) {
         self.frames.clear(slot);
+    }
+
+    /// Stream a frame into the store. `arrival` counts the frames offered before it (it keys
+    /// the policy's randomness and is kept with the slot). The frame is checked as `set_frame`
+    /// checks it and refused if all black or all saturated; then the config's replacement
+    /// policy (`stream.rs`) picks its slot or turns it away. A stored frame's per-frame state
+    /// is reset as `set_frame` does.
+    pub fn ingest_frame(
+        &mut self,
+        arrival: u32,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<Ingested, Error> {
+        self.frames.check(&camera, &pose, pixels, mask)?;
+        admission::check_exposure(pixels)?;
+        let incoming = Descriptor::new(&self.config, &pose, mean_brightness(pixels));
+        let Some(slot) = admission::choose_slot(&self.config, &self.frames, &incoming, arrival)
+        else {
+            return Ok(Ingested::Rejected);
+        };
+        let evicted = self.frames.meta(slot).map(|m| m.arrival);
+        self.set_frame(slot, camera, pose, pixels, mask)?;
+        self.frames.set_arrival(slot, arrival);
+        Ok(Ingested::Stored { slot, evicted })
     }
 
     /// The ray through pixel `(i, j)` of a camera at `pose`: origin and unit direction.
