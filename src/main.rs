@@ -3,6 +3,7 @@
 
 mod ablate;
 mod simulate;
+mod stream;
 
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -40,6 +41,9 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// The paper's ablation (baseline, + appearance, + pose) or its pose-noise sweep.
     Ablate(ablate::AblateArgs),
+    /// Ingest frames one at a time (dataset folder, watched folder, simulator) into a fixed
+    /// frame store, training as they arrive; anytime quality, checkpoints, resume.
+    Stream(stream::StreamArgs),
 }
 
 #[derive(Args, Clone)]
@@ -169,6 +173,7 @@ fn main() {
         Command::Demo(args) => run_demo(&args),
         Command::Simulate(args) => simulate::run(&args),
         Command::Ablate(args) => ablate::run(&args),
+        Command::Stream(args) => stream::run(&args),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

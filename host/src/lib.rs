@@ -10,6 +10,7 @@ pub mod nerf_formats;
 pub mod report;
 pub mod sim;
 pub mod speedplus;
+pub mod stream;
 pub mod train;
 
 pub use error::{HostError, Result};

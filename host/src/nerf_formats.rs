@@ -798,7 +798,7 @@ const NON_FINITE_MARK: &str = "non-finite literal ";
 /// Python's `json.dump` writes `NaN`, `Infinity` and `-Infinity`, which are not JSON. Quote
 /// them (outside strings) so the file parses and the number check can name the field that holds
 /// one, instead of failing with only a line and column.
-fn quote_non_finite_literals(text: &str) -> String {
+pub(crate) fn quote_non_finite_literals(text: &str) -> String {
     let mut out = String::with_capacity(text.len());
     let mut in_string = false;
     let mut escaped = false;

@@ -81,8 +81,13 @@ pub fn read_labels(path: &Path) -> Result<Vec<Label>> {
     entries
         .iter()
         .enumerate()
-        .map(|(index, entry)| parse_label(path, index, entry))
+        .map(|(index, entry)| parse_label(path, &format!("[{index}]."), entry))
         .collect()
+}
+
+/// Read a file holding one SPEED+ label (a JSON object with the keys of a label file's entry).
+pub fn read_label(path: &Path) -> Result<Label> {
+    parse_label(path, "", &read_json(path)?)
 }
 
 /// Write labels as a SPEED+ label file.
@@ -90,8 +95,9 @@ pub fn write_labels(path: &Path, labels: &[Label]) -> Result<()> {
     write_json(path, labels)
 }
 
-fn parse_label(path: &Path, index: usize, entry: &Value) -> Result<Label> {
-    let field = |name: &str| format!("[{index}].{name}");
+/// Check one label entry; its fields are named `{prefix}{key}` in errors.
+fn parse_label(path: &Path, prefix: &str, entry: &Value) -> Result<Label> {
+    let field = |name: &str| format!("{prefix}{name}");
     let filename = entry
         .get("filename")
         .and_then(Value::as_str)
@@ -148,9 +154,11 @@ fn number(path: &Path, object: &Value, key: &str) -> Result<f64> {
         .ok_or_else(|| HostError::field(path, key, "missing or not a finite number"))
 }
 
+/// Read a JSON file; `NaN` and `Infinity` literals (which Python writes) become strings, so
+/// the number check names the field that holds one.
 fn read_json(path: &Path) -> Result<Value> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    serde_json::from_str(&text)
+    serde_json::from_str(&crate::nerf_formats::quote_non_finite_literals(&text))
         .map_err(|e| HostError::invalid(path, format!("malformed JSON: {e}")))
 }
 
@@ -364,62 +372,15 @@ pub struct SpeedPlusSet {
 
 /// Load a SPEED+ / SHIRT / simulator set from a label file or a folder (see the module docs).
 pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
-    let label_file = find_label_file(path)?;
-    let label_dir = label_file.parent().unwrap_or(Path::new(".")).to_path_buf();
-    let camera_file = find_upwards(&label_dir, "camera.json").ok_or_else(|| {
-        HostError::invalid(
-            label_dir.join("camera.json"),
-            "camera file not found here or in the two parent folders",
-        )
-    })?;
-    let camera = SpeedCamera::read(&camera_file)?;
-    let labels = read_labels(&label_file)?;
-    let images_dir = find_images_dir(&label_dir, options)?;
-    let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
-    let truth_file = label_dir.join("truth.json");
-    let truth = if truth_file.is_file() {
-        Some(Truth::read(&truth_file)?)
-    } else {
-        None
-    };
-
-    let resampler = Resampler::new(&camera, options.width);
-    let frames = labels
-        .par_iter()
-        .enumerate()
-        .map(|(index, label)| {
-            let pose = label.pose().ok_or_else(|| {
-                HostError::field(
-                    &label_file,
-                    format!("[{index}].q_vbs2tango_true"),
-                    "not a valid pose",
-                )
-            })?;
-            let image_path = images_dir.join(&label.filename);
-            let pixels =
-                resampler.rgb(&image_path, &read_image(&image_path, &camera)?.to_rgb8())?;
-            let mask = match &masks_dir {
-                Some(dir) => {
-                    let mask_path = dir.join(Path::new(&label.filename).with_extension("png"));
-                    let mask = read_image(&mask_path, &camera)?.to_luma8();
-                    Some(resampler.mask(&mask_path, &mask)?)
-                }
-                None => None,
-            };
-            Ok(Frame {
-                name: label.filename.clone(),
-                camera: resampler.output,
-                pose,
-                pixels,
-                mask,
-            })
-        })
+    let reader = SpeedPlusReader::open(path, options)?;
+    let labels = (0..reader.len())
+        .map(|index| reader.label(index))
         .collect::<Result<Vec<_>>>()?;
-
-    let (scene_min, scene_max) = match &truth {
-        Some(truth) => (truth.target_box_min, truth.target_box_max),
-        None => TANGO_SCENE_BOX,
-    };
+    let frames = (0..reader.len())
+        .into_par_iter()
+        .map(|index| reader.frame(index))
+        .collect::<Result<Vec<_>>>()?;
+    let (scene_min, scene_max) = reader.scene_box();
     Ok(SpeedPlusSet {
         dataset: Dataset {
             source: path.to_path_buf(),
@@ -429,10 +390,180 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
             background: [0.0; 3],
         },
         labels,
-        truth,
-        camera,
-        label_file,
+        truth: reader.truth,
+        camera: reader.decoder.camera,
+        label_file: reader.label_file,
     })
+}
+
+/// A SPEED+ / SHIRT / simulator set opened for reading one frame at a time: the label file,
+/// camera and truth are read when it opens, a frame's label is checked and its image decoded
+/// only when that frame is asked for (streaming never holds the whole set).
+pub struct SpeedPlusReader {
+    entries: Vec<Value>,
+    pub truth: Option<Truth>,
+    pub label_file: PathBuf,
+    images_dir: PathBuf,
+    masks_dir: Option<PathBuf>,
+    pub decoder: FrameDecoder,
+}
+
+impl SpeedPlusReader {
+    pub fn open(path: &Path, options: &LoadOptions) -> Result<SpeedPlusReader> {
+        let label_file = find_label_file(path)?;
+        let label_dir = label_file.parent().unwrap_or(Path::new(".")).to_path_buf();
+        let camera_file = find_upwards(&label_dir, "camera.json").ok_or_else(|| {
+            HostError::invalid(
+                label_dir.join("camera.json"),
+                "camera file not found here or in the two parent folders",
+            )
+        })?;
+        let camera = SpeedCamera::read(&camera_file)?;
+        let entries = read_json(&label_file)?
+            .as_array()
+            .cloned()
+            .ok_or_else(|| HostError::invalid(&label_file, "expected a JSON list of labels"))?;
+        let images_dir = find_images_dir(&label_dir, options)?;
+        let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
+        let truth_file = label_dir.join("truth.json");
+        let truth = if truth_file.is_file() {
+            Some(Truth::read(&truth_file)?)
+        } else {
+            None
+        };
+        Ok(SpeedPlusReader {
+            entries,
+            truth,
+            decoder: FrameDecoder::new(camera, options.width),
+            label_file,
+            images_dir,
+            masks_dir,
+        })
+    }
+
+    /// Frames (label entries) in the set.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The scene box: the target's from `truth.json`, else TANGO's.
+    pub fn scene_box(&self) -> ([f32; 3], [f32; 3]) {
+        match &self.truth {
+            Some(truth) => (truth.target_box_min, truth.target_box_max),
+            None => TANGO_SCENE_BOX,
+        }
+    }
+
+    /// The checked label of frame `index`.
+    pub fn label(&self, index: usize) -> Result<Label> {
+        let entry = self.entries.get(index).ok_or_else(|| {
+            HostError::invalid(&self.label_file, format!("no label number {index}"))
+        })?;
+        parse_label(&self.label_file, &format!("[{index}]."), entry)
+    }
+
+    /// Frame `index`: label checked, image (and mask) decoded and resampled.
+    pub fn frame(&self, index: usize) -> Result<Frame> {
+        let label = self.label(index)?;
+        let pose = label.pose().ok_or_else(|| {
+            HostError::field(
+                &self.label_file,
+                format!("[{index}].q_vbs2tango_true"),
+                "not a valid pose",
+            )
+        })?;
+        let image_path = self.images_dir.join(&label.filename);
+        let mask_path = self
+            .masks_dir
+            .as_ref()
+            .map(|dir| dir.join(Path::new(&label.filename).with_extension("png")));
+        self.decoder.decode(
+            label.filename.clone(),
+            pose,
+            &image_path,
+            mask_path.as_deref(),
+        )
+    }
+}
+
+/// Turns stored images of one SPEED+ camera into frames: checks their size, resamples them
+/// to the output size and undistorts them to a pinhole camera.
+pub struct FrameDecoder {
+    /// The camera file as read (the stored image size, before any resampling).
+    pub camera: SpeedCamera,
+    resampler: Resampler,
+}
+
+impl FrameDecoder {
+    /// `width`: the output width (the height keeps the aspect ratio); `None` keeps the size.
+    pub fn new(camera: SpeedCamera, width: Option<u32>) -> FrameDecoder {
+        FrameDecoder {
+            resampler: Resampler::new(&camera, width),
+            camera,
+        }
+    }
+
+    /// The pinhole camera of the frames as they are produced.
+    pub fn output_camera(&self) -> Camera {
+        self.resampler.output
+    }
+
+    /// Decode an image (and mask) into a frame at `pose`.
+    pub fn decode(
+        &self,
+        name: String,
+        pose: Pose,
+        image_path: &Path,
+        mask_path: Option<&Path>,
+    ) -> Result<Frame> {
+        let image = read_image(image_path, &self.camera)?.to_rgb8();
+        let mask = match mask_path {
+            Some(path) => Some((path, read_image(path, &self.camera)?.to_luma8())),
+            None => None,
+        };
+        let mask = mask.as_ref().map(|(path, mask)| (*path, mask));
+        self.from_images(name, pose, (image_path, &image), mask)
+    }
+
+    /// A frame at `pose` from decoded images of this camera's size (each with the path to
+    /// name in messages).
+    pub fn from_images(
+        &self,
+        name: String,
+        pose: Pose,
+        (image_path, image): (&Path, &image::RgbImage),
+        mask: Option<(&Path, &image::GrayImage)>,
+    ) -> Result<Frame> {
+        let (w, h) = (self.camera.width, self.camera.height);
+        for (path, size) in [(image_path, image.dimensions())]
+            .into_iter()
+            .chain(mask.map(|(path, mask)| (path, mask.dimensions())))
+        {
+            if size != (w, h) {
+                return Err(HostError::invalid(
+                    path,
+                    format!("image is {}x{} but the camera is {w}x{h}", size.0, size.1),
+                ));
+            }
+        }
+        let resampler = &self.resampler;
+        let pixels = resampler.rgb(image_path, image)?;
+        let mask = match mask {
+            Some((path, mask)) => Some(resampler.mask(path, mask)?),
+            None => None,
+        };
+        Ok(Frame {
+            name,
+            camera: resampler.output,
+            pose,
+            pixels,
+            mask,
+        })
+    }
 }
 
 fn find_label_file(path: &Path) -> Result<PathBuf> {

@@ -4,6 +4,7 @@
 use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
+use crate::report::ViewMetrics;
 use orbit_nerf_core::{Config, Executor, Replacement, TexelUpdate, Trainer};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -187,6 +188,11 @@ pub const CHECKPOINT_KIND: &str = "orbit-nerf trainer";
 
 /// Save the trainer's whole state (and its config) atomically.
 pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
+    crate::checkpoint::save(path, &checkpoint_of(path, trainer)?)
+}
+
+/// The trainer's whole state and config as a checkpoint (`path` names it in errors).
+pub fn checkpoint_of(path: &Path, trainer: &Trainer<'_>) -> Result<Checkpoint> {
     let config = postcard::to_allocvec(&ConfigWrapper(*trainer.config()))
         .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
     let sections = trainer
@@ -197,14 +203,11 @@ pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
             bytes: bytes.to_vec(),
         })
         .collect();
-    crate::checkpoint::save(
-        path,
-        &Checkpoint {
-            kind: CHECKPOINT_KIND.to_string(),
-            config,
-            sections,
-        },
-    )
+    Ok(Checkpoint {
+        kind: CHECKPOINT_KIND.to_string(),
+        config,
+        sections,
+    })
 }
 
 /// The config stored in a checkpoint.
@@ -332,4 +335,23 @@ pub fn evaluate<E: Executor>(
         });
     }
     Ok(scores)
+}
+
+/// PSNR, SSIM and JNB of evaluated views (`report::score_view`) against their dataset frames.
+pub fn view_metrics(dataset: &Dataset, scores: &[ViewScore]) -> Result<Vec<ViewMetrics>> {
+    scores
+        .iter()
+        .map(|score| {
+            let frame = dataset.frames.get(score.index).ok_or_else(|| {
+                HostError::invalid(&dataset.source, format!("no view {}", score.index))
+            })?;
+            crate::report::score_view(
+                &score.render,
+                &frame.pixels,
+                frame.camera.width as usize,
+                frame.camera.height as usize,
+            )
+            .map_err(|e| HostError::invalid(&frame.name, e.to_string()))
+        })
+        .collect()
 }

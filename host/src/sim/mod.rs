@@ -24,6 +24,7 @@ use crate::error::{HostError, Result};
 use crate::io::write_png;
 use crate::speedplus::{Label, SpeedCamera, Truth, TruthFrame, write_labels};
 use rayon::prelude::*;
+pub use render::RenderedImage;
 use render::Renderer;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -235,6 +236,94 @@ pub fn frame_filename(index: u32) -> String {
     format!("img{:06}.png", index + 1)
 }
 
+/// Renders the frames of a scene one at a time: what [`simulate`] writes, and what a stream
+/// asks for frame by frame.
+pub struct FrameSimulator<'s> {
+    scene: &'s Scene,
+    target: Target,
+    camera_file: SpeedCamera,
+}
+
+/// One rendered frame with its labels.
+pub struct SimulatedFrame {
+    pub filename: String,
+    /// The label to train on (noisy if the scene asks).
+    pub label: Label,
+    /// The exact pose, sun direction and exposure.
+    pub truth: TruthFrame,
+    pub image: RenderedImage,
+    pub times: StageTimes,
+}
+
+impl<'s> FrameSimulator<'s> {
+    pub fn new(scene: &'s Scene) -> Result<FrameSimulator<'s>> {
+        let spec = &scene.spec;
+        let target = Target::build(scene)?;
+        let sensor =
+            SpeedCamera::read(&scene.resolve_path("camera.intrinsics", &spec.camera.intrinsics)?)?;
+        let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
+        Ok(FrameSimulator {
+            scene,
+            target,
+            camera_file,
+        })
+    }
+
+    /// The camera file of the output (SPEED+ format, scaled to the output size).
+    pub fn camera_file(&self) -> &SpeedCamera {
+        &self.camera_file
+    }
+
+    /// The box (body frame) that holds the target.
+    pub fn scene_box(&self) -> ([f32; 3], [f32; 3]) {
+        self.target.scene_box()
+    }
+
+    pub fn triangle_count(&self) -> usize {
+        self.target.triangle_count()
+    }
+
+    /// Frame `index`: a pure function of the scene, its seed and the index.
+    pub fn render(&self, index: u32) -> SimulatedFrame {
+        let spec = &self.scene.spec;
+        let renderer = Renderer {
+            target: &self.target,
+            effects: &spec.effects,
+            camera: self.camera_file.pinhole(),
+            lens: spec.camera.distortion.then_some(&self.camera_file),
+            antialias: spec.antialias,
+            seed: spec.seed,
+        };
+        let mut times = StageTimes::default();
+        let (center, radius) = (self.target.center(), self.target.radius());
+        let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index);
+        let filename = frame_filename(index);
+        let (q, r) = match &spec.effects.label_noise {
+            Some(noise) => times.time(Stage::LabelNoise, || {
+                trajectory::noisy_label(&view, noise, spec.seed, index)
+            }),
+            None => (view.body_to_camera, view.target_in_camera),
+        };
+        let label = Label::new(filename.clone(), q, r);
+        let exact = Label::new(filename.clone(), view.body_to_camera, view.target_in_camera);
+        let image = renderer.render(&view, index, &mut times);
+        let truth = TruthFrame {
+            filename: filename.clone(),
+            q_vbs2tango_true: exact.q_vbs2tango,
+            r_vo2to_vbs_true: exact.r_vo2to_vbs,
+            sun_direction_body: view.sun_body.to_array().map(f64::from),
+            exposure: view.exposure as f64,
+        };
+        SimulatedFrame {
+            filename,
+            label,
+            truth,
+            image,
+            times,
+        }
+    }
+}
+
 /// Render every frame of `scene` and write the dataset to `out`. `progress` is called once per
 /// finished frame (from worker threads). Output is staged in a sibling folder and moved into
 /// place when complete; an existing `out` is replaced only if it is empty or a simulated
@@ -247,39 +336,22 @@ pub fn simulate(
     let start = Instant::now();
     let spec = &scene.spec;
     check_replaceable(out)?;
-    let target = Target::build(scene)?;
-    let sensor =
-        SpeedCamera::read(&scene.resolve_path("camera.intrinsics", &spec.camera.intrinsics)?)?;
-    let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
-    let renderer = Renderer {
-        target: &target,
-        effects: &spec.effects,
-        camera: camera_file.pinhole(),
-        lens: spec.camera.distortion.then_some(&camera_file),
-        antialias: spec.antialias,
-        seed: spec.seed,
-    };
+    let simulator = FrameSimulator::new(scene)?;
     let staging = sibling(out, "partial");
     if staging.exists() {
         std::fs::remove_dir_all(&staging).map_err(|e| HostError::io(&staging, e))?;
     }
-    let (center, radius) = (target.center(), target.radius());
 
     let frames = (0..spec.frames)
         .into_par_iter()
         .map(|index| {
-            let mut times = StageTimes::default();
-            let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index);
-            let filename = frame_filename(index);
-            let (q, r) = match &spec.effects.label_noise {
-                Some(noise) => times.time(Stage::LabelNoise, || {
-                    trajectory::noisy_label(&view, noise, spec.seed, index)
-                }),
-                None => (view.body_to_camera, view.target_in_camera),
-            };
-            let label = Label::new(filename.clone(), q, r);
-            let exact = Label::new(filename.clone(), view.body_to_camera, view.target_in_camera);
-            let image = renderer.render(&view, index, &mut times);
+            let SimulatedFrame {
+                filename,
+                label,
+                truth,
+                image,
+                mut times,
+            } = simulator.render(index);
             times.time(Stage::Write, || {
                 let size = spec.size as u32;
                 write_png(
@@ -298,13 +370,6 @@ pub fn simulate(
                 )
             })?;
             progress();
-            let truth = TruthFrame {
-                filename,
-                q_vbs2tango_true: exact.q_vbs2tango,
-                r_vo2to_vbs_true: exact.r_vo2to_vbs,
-                sun_direction_body: view.sun_body.to_array().map(f64::from),
-                exposure: view.exposure as f64,
-            };
             Ok((label, truth, times))
         })
         .collect::<Result<Vec<_>>>();
@@ -322,7 +387,7 @@ pub fn simulate(
             total.add(times)
         });
     let labels: Vec<Label> = frames.iter().map(|(label, _, _)| label.clone()).collect();
-    let (box_min, box_max) = target.scene_box();
+    let (box_min, box_max) = simulator.scene_box();
     let truth = Truth {
         target_box_min: box_min,
         target_box_max: box_max,
@@ -330,14 +395,16 @@ pub fn simulate(
     };
     write_labels(&staging.join("labels.json"), &labels)?;
     truth.write(&staging.join("truth.json"))?;
-    camera_file.write(&staging.join("camera.json"))?;
+    simulator
+        .camera_file()
+        .write(&staging.join("camera.json"))?;
     crate::io::write_atomic(&staging.join("scene.toml"), scene.to_toml()?.as_bytes())?;
     move_into_place(&staging, out)?;
 
     Ok(SimulationReport {
         frames: spec.frames,
         size: spec.size,
-        triangles: target.triangle_count(),
+        triangles: simulator.triangle_count(),
         effects: spec.effects.clone(),
         times,
         wall_time: start.elapsed(),

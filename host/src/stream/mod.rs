@@ -1,0 +1,526 @@
+//! Streaming: frames arrive one at a time from a [`FrameSource`] and go into the core's
+//! fixed frame store through its replacement policy (`Trainer::ingest_frame`), with a fixed
+//! number of training steps after each usable frame, so the result depends only on the config,
+//! the arrival order and the seed (not on timing, pacing, polling or thread count).
+//!
+//! - Every `holdout_every`-th usable frame is held out for the anytime-quality curve: every
+//!   `eval_every` usable frames the held-out views seen so far are scored as `train::evaluate`
+//!   scores them (embedding fitted on the left half), with the frames seen and held, the steps,
+//!   the wall time per frame and the resident memory of the process.
+//! - Bad frames (unreadable or wrong-size image, missing or malformed label, non-finite pose,
+//!   all-black or all-saturated image) are reported once and skipped; nothing learned is lost.
+//! - The checkpoint holds the trainer's whole state plus a `stream` section ([`StreamState`]),
+//!   written atomically every `checkpoint_every` frames and when the stream stops; resuming
+//!   from it with the same source skips the frames already seen and ends bit-identical to an
+//!   uninterrupted run.
+
+pub mod source;
+
+pub use source::{
+    Arrival, DatasetSource, FrameSource, SimulatorSource, SourceInfo, WatchOptions, WatchedFolder,
+};
+
+use crate::checkpoint::{self, Checkpoint, Section};
+use crate::dataset::{Dataset, Frame};
+use crate::error::{HostError, Result};
+use crate::report::{self, ViewMetrics};
+use crate::train;
+use orbit_nerf_core::{Config, Executor, Ingested, MemoryPlan, Replacement, Trainer};
+use serde::{Deserialize, Serialize};
+use std::fmt::Write as _;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// How a stream trains and reports (stored in its checkpoints, so a resumed stream keeps them).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StreamSettings {
+    /// Training steps after each usable frame.
+    pub steps_per_frame: u32,
+    /// Every this many usable frames, one is held out (the `n`-th, `2n`-th, ...).
+    pub holdout_every: u64,
+    /// Score the held-out views every this many usable frames.
+    pub eval_every: u64,
+    /// Write the checkpoint every this many arrivals.
+    pub checkpoint_every: u64,
+    /// Steps fitting a held-out view's embedding on its left half.
+    pub fit_steps: u32,
+}
+
+/// A frame that was reported and skipped.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BadFrame {
+    pub position: u64,
+    pub message: String,
+}
+
+/// One point of the anytime-quality curve.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnytimePoint {
+    /// Arrivals so far (usable or not).
+    pub frames_seen: u64,
+    /// Frames in the store.
+    pub frames_held: usize,
+    pub held_out_views: usize,
+    pub steps: u32,
+    /// Means over the held-out views: whole image and right half.
+    pub psnr: f64,
+    pub ssim: f64,
+    pub psnr_right: f64,
+    pub ssim_right: f64,
+    /// Mean wall time per arrival since the previous point (ingest and training, not waiting).
+    pub seconds_per_frame: f64,
+    /// Resident memory of the process (MiB), NaN where it cannot be read.
+    pub rss_mib: f64,
+}
+
+/// Everything about a stream beyond the trainer's state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StreamState {
+    pub settings: StreamSettings,
+    /// Arrivals consumed: the source position to resume from.
+    pub position: u64,
+    pub usable: u64,
+    /// Frames offered to the store (the core's arrival numbers).
+    pub offered: u32,
+    pub stored: u64,
+    pub rejected: u64,
+    /// Source positions of the held-out frames.
+    pub held_out: Vec<u64>,
+    /// Source position of the frame in each slot.
+    pub slot_positions: Vec<Option<u64>>,
+    pub bad: Vec<BadFrame>,
+    pub curve: Vec<AnytimePoint>,
+}
+
+impl StreamState {
+    pub fn new(settings: StreamSettings, capacity: usize) -> StreamState {
+        StreamState {
+            settings,
+            position: 0,
+            usable: 0,
+            offered: 0,
+            stored: 0,
+            rejected: 0,
+            held_out: Vec::new(),
+            slot_positions: vec![None; capacity],
+            bad: Vec::new(),
+            curve: Vec::new(),
+        }
+    }
+}
+
+/// What happened to an arriving frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fate {
+    /// Into `slot`, replacing the frame from source position `evicted`.
+    Stored {
+        slot: usize,
+        evicted: Option<u64>,
+    },
+    /// The policy kept the held frames.
+    Rejected,
+    HeldOut,
+}
+
+/// Progress reports of a running stream.
+pub enum Event<'e> {
+    Frame {
+        position: u64,
+        name: &'e str,
+        fate: Fate,
+        /// Mean squared error of the last training step.
+        mse: f32,
+    },
+    Bad(&'e BadFrame),
+    Anytime(&'e AnytimePoint),
+    Checkpoint(&'e Path),
+}
+
+/// How a stream is stopped and where it saves itself.
+pub struct Control<'c> {
+    /// Raised (by a signal handler) to stop after the current frame.
+    pub stop: &'c AtomicBool,
+    /// Stop once this many arrivals have been consumed (deterministic interruption).
+    pub stop_after: Option<u64>,
+    /// End the stream (as if the source ended) after this many arrivals.
+    pub end_after: Option<u64>,
+    pub checkpoint: &'c Path,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    /// The source ended.
+    Finished,
+    /// Stopped early; the checkpoint resumes it.
+    Stopped,
+}
+
+/// The config of a stream: `base` with the source's scene box and background, `store` slots
+/// of the source's frame size, the replacement policy, and a schedule over the steps the
+/// source's frames will get (when it says how many it has; otherwise `base.steps`).
+pub fn stream_config(
+    base: &Config,
+    info: &SourceInfo,
+    store: u16,
+    replacement: Replacement,
+    steps_per_frame: u32,
+) -> Config {
+    let mut c = *base;
+    c.aabb_min = info.scene_min;
+    c.aabb_max = info.scene_max;
+    c.background = info.background;
+    c.max_frames = store;
+    c.max_pixels_per_frame = info.max_pixels.min(u32::MAX as usize) as u32;
+    c.replacement = replacement;
+    if let Some(frames) = info.frames {
+        c.steps = (frames.saturating_mul(steps_per_frame as u64)).clamp(1, u32::MAX as u64) as u32;
+    }
+    c.warmup_steps = c.warmup_steps.min(c.steps);
+    c
+}
+
+/// Resident memory of this process in MiB (Linux `/proc/self/status`), NaN elsewhere.
+pub fn resident_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|status| {
+            let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+            let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+            Some(kib / 1024.0)
+        })
+        .unwrap_or(f64::NAN)
+}
+
+fn core_error(what: impl AsRef<Path>, e: orbit_nerf_core::Error) -> HostError {
+    HostError::invalid(what.as_ref(), e.to_string())
+}
+
+/// Stream frames from `source` into `trainer` until the source ends or `control` stops it,
+/// continuing from `state` (fresh, or restored from a checkpoint with the source already
+/// positioned by [`FrameSource::seek`]).
+pub fn run<E: Executor, S: FrameSource + ?Sized>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    source: &mut S,
+    state: &mut StreamState,
+    control: &Control<'_>,
+    on_event: &mut dyn FnMut(&Event<'_>),
+) -> Result<Outcome> {
+    let mut window = (Instant::now(), 0u64, 0.0f64);
+    loop {
+        if control.stop.load(Ordering::SeqCst)
+            || control.stop_after.is_some_and(|n| state.position >= n)
+        {
+            save(control.checkpoint, trainer, state)?;
+            on_event(&Event::Checkpoint(control.checkpoint));
+            return Ok(Outcome::Stopped);
+        }
+        if control.end_after.is_some_and(|n| state.position >= n) {
+            break;
+        }
+        let Some(arrival) = source.next(control.stop) else {
+            if control.stop.load(Ordering::SeqCst) {
+                continue;
+            }
+            break;
+        };
+        let started = Instant::now();
+        let position = state.position;
+        state.position += 1;
+        let usable = match arrival {
+            Arrival::Frame(frame) => check(trainer, &frame).map(|()| frame),
+            Arrival::Bad(e) => Err(e),
+        };
+        let was_usable = usable.is_ok();
+        match usable {
+            Err(e) => {
+                let bad = BadFrame {
+                    position,
+                    message: e.to_string(),
+                };
+                on_event(&Event::Bad(&bad));
+                state.bad.push(bad);
+            }
+            Ok(frame) => {
+                let fate = ingest(trainer, state, position, &frame)?;
+                let mut mse = f32::NAN;
+                if !trainer.frames().is_empty() {
+                    for _ in 0..state.settings.steps_per_frame {
+                        mse = trainer
+                            .step(executor)
+                            .map_err(|e| core_error(&frame.name, e))?
+                            .mse;
+                    }
+                }
+                on_event(&Event::Frame {
+                    position,
+                    name: &frame.name,
+                    fate,
+                    mse,
+                });
+            }
+        }
+        window.1 += 1;
+        window.2 += started.elapsed().as_secs_f64();
+        if was_usable
+            && state
+                .usable
+                .is_multiple_of(state.settings.eval_every.max(1))
+        {
+            let point =
+                anytime_point(trainer, executor, source, state, window.2 / window.1 as f64)?;
+            on_event(&Event::Anytime(&point));
+            state.curve.push(point);
+            window = (Instant::now(), 0, 0.0);
+        }
+        if state
+            .position
+            .is_multiple_of(state.settings.checkpoint_every.max(1))
+        {
+            save(control.checkpoint, trainer, state)?;
+            on_event(&Event::Checkpoint(control.checkpoint));
+        }
+    }
+    if state
+        .curve
+        .last()
+        .is_none_or(|p| p.frames_seen < state.position)
+        && state.usable > 0
+    {
+        let per_frame = window.2 / window.1.max(1) as f64;
+        let point = anytime_point(trainer, executor, source, state, per_frame)?;
+        on_event(&Event::Anytime(&point));
+        state.curve.push(point);
+    }
+    save(control.checkpoint, trainer, state)?;
+    on_event(&Event::Checkpoint(control.checkpoint));
+    Ok(Outcome::Finished)
+}
+
+/// The core's checks of a frame (camera, pose, sizes) and of its exposure, as a host error
+/// naming the frame.
+fn check(trainer: &Trainer<'_>, frame: &Frame) -> Result<()> {
+    trainer
+        .frames()
+        .check(
+            &frame.camera,
+            &frame.pose,
+            &frame.pixels,
+            frame.mask.as_deref(),
+        )
+        .and_then(|()| orbit_nerf_core::stream::check_exposure(&frame.pixels))
+        .map_err(|e| core_error(&frame.name, e))
+}
+
+/// Hold a usable frame out, or offer it to the store.
+fn ingest(
+    trainer: &mut Trainer<'_>,
+    state: &mut StreamState,
+    position: u64,
+    frame: &Frame,
+) -> Result<Fate> {
+    state.usable += 1;
+    if state
+        .usable
+        .is_multiple_of(state.settings.holdout_every.max(1))
+    {
+        state.held_out.push(position);
+        return Ok(Fate::HeldOut);
+    }
+    let arrival = state.offered;
+    state.offered += 1;
+    let ingested = trainer
+        .ingest_frame(
+            arrival,
+            frame.camera,
+            frame.pose,
+            &frame.pixels,
+            frame.mask.as_deref(),
+        )
+        .map_err(|e| core_error(&frame.name, e))?;
+    Ok(match ingested {
+        Ingested::Stored { slot, .. } => {
+            state.stored += 1;
+            let evicted = state
+                .slot_positions
+                .get_mut(slot)
+                .and_then(|held| held.replace(position));
+            Fate::Stored { slot, evicted }
+        }
+        Ingested::Rejected => {
+            state.rejected += 1;
+            Fate::Rejected
+        }
+    })
+}
+
+/// The held-out frames seen so far, read again from the source (those that still read).
+fn held_out_views<S: FrameSource + ?Sized>(source: &S, state: &StreamState) -> Dataset {
+    let info = source.info();
+    Dataset {
+        source: info.name.clone().into(),
+        frames: state
+            .held_out
+            .iter()
+            .filter_map(|&position| source.reload(position).ok())
+            .collect(),
+        scene_min: info.scene_min,
+        scene_max: info.scene_max,
+        background: info.background,
+    }
+}
+
+/// Mean held-out quality of the current model on `views` (NaN without views).
+pub fn held_out_quality<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    views: &Dataset,
+    fit_steps: u32,
+) -> Result<ViewMetrics> {
+    let indices: Vec<usize> = (0..views.frames.len()).collect();
+    let scores = train::evaluate(trainer, executor, views, &indices, fit_steps, None)?;
+    Ok(report::mean_metrics(&train::view_metrics(views, &scores)?))
+}
+
+fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    source: &S,
+    state: &StreamState,
+    seconds_per_frame: f64,
+) -> Result<AnytimePoint> {
+    let views = held_out_views(source, state);
+    let metrics = held_out_quality(trainer, executor, &views, state.settings.fit_steps)?;
+    Ok(AnytimePoint {
+        frames_seen: state.position,
+        frames_held: trainer.frames().len(),
+        held_out_views: views.frames.len(),
+        steps: trainer.state().step,
+        psnr: metrics.psnr_full,
+        ssim: metrics.ssim_full,
+        psnr_right: metrics.psnr_right,
+        ssim_right: metrics.ssim_right,
+        seconds_per_frame,
+        rss_mib: resident_mib(),
+    })
+}
+
+/// Name of the checkpoint section holding the [`StreamState`].
+pub const STREAM_SECTION: &str = "stream";
+
+/// Write the trainer's state and the stream's state to `path` atomically.
+pub fn save(path: &Path, trainer: &Trainer<'_>, state: &StreamState) -> Result<()> {
+    let mut checkpoint = train::checkpoint_of(path, trainer)?;
+    let bytes = postcard::to_allocvec(state)
+        .map_err(|e| HostError::invalid(path, format!("cannot encode the stream state: {e}")))?;
+    checkpoint.sections.push(Section {
+        name: STREAM_SECTION.into(),
+        bytes,
+    });
+    checkpoint::save(path, &checkpoint)
+}
+
+/// A stream checkpoint: the checkpoint (for `train::restore_checkpoint`), its config and the
+/// stream's state.
+pub fn load(path: &Path) -> Result<(Checkpoint, Config, StreamState)> {
+    let checkpoint = checkpoint::load(path)?;
+    let config = train::checkpoint_config(path, &checkpoint)?;
+    let bytes = checkpoint
+        .section(STREAM_SECTION)
+        .map_err(|_| HostError::field(path, STREAM_SECTION, "missing: not a stream checkpoint"))?;
+    let state: StreamState = postcard::from_bytes(bytes)
+        .map_err(|e| HostError::field(path, STREAM_SECTION, format!("cannot decode: {e}")))?;
+    if state.slot_positions.len() != config.max_frames as usize {
+        return Err(HostError::field(
+            path,
+            STREAM_SECTION,
+            "slot count differs from the config's max_frames",
+        ));
+    }
+    Ok((checkpoint, config, state))
+}
+
+/// The anytime curve as CSV.
+pub fn curve_csv(curve: &[AnytimePoint]) -> String {
+    let mut csv = String::from(
+        "frames_seen,frames_held,held_out_views,steps,psnr,ssim,psnr_right,ssim_right,seconds_per_frame,rss_mib\n",
+    );
+    for p in curve {
+        let _ = writeln!(
+            csv,
+            "{},{},{},{},{:.4},{:.5},{:.4},{:.5},{:.5},{:.2}",
+            p.frames_seen,
+            p.frames_held,
+            p.held_out_views,
+            p.steps,
+            p.psnr,
+            p.ssim,
+            p.psnr_right,
+            p.ssim_right,
+            p.seconds_per_frame,
+            p.rss_mib
+        );
+    }
+    csv
+}
+
+/// Write `anytime.csv` and `anytime.png` (held-out PSNR against frames seen) into `dir`,
+/// atomically.
+pub fn write_curve(dir: &Path, curve: &[AnytimePoint]) -> Result<()> {
+    crate::io::write_atomic(&dir.join("anytime.csv"), curve_csv(curve).as_bytes())?;
+    let series = |f: fn(&AnytimePoint) -> f64| -> Vec<(f64, f64)> {
+        curve.iter().map(|p| (p.frames_seen as f64, f(p))).collect()
+    };
+    report::line_plot(
+        &dir.join("anytime.png"),
+        "Anytime quality of a stream",
+        "frames seen",
+        "held-out PSNR (dB)",
+        &[
+            ("whole image", series(|p| p.psnr)),
+            ("right half", series(|p| p.psnr_right)),
+        ],
+    )
+}
+
+/// The offline reference of a finished stream: a fresh model trained on all its usable,
+/// not-held-out frames at once for the same number of steps, scored on the same held-out
+/// views. Reads every training frame into memory (it is the comparison, not the stream).
+pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
+    source: &S,
+    state: &StreamState,
+    stream_config: &Config,
+    steps: u32,
+    executor: &E,
+    on_step: &mut dyn FnMut(u32),
+) -> Result<ViewMetrics> {
+    let skipped: Vec<u64> = state
+        .bad
+        .iter()
+        .map(|b| b.position)
+        .chain(state.held_out.iter().copied())
+        .collect();
+    let frames = (0..state.position)
+        .filter(|p| !skipped.contains(p))
+        .map(|p| source.reload(p))
+        .collect::<Result<Vec<_>>>()?;
+    let mut config = *stream_config;
+    config.max_frames = frames.len().clamp(1, u16::MAX as usize) as u16;
+    config.steps = steps.max(1);
+    config.warmup_steps = config.warmup_steps.min(config.steps);
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer =
+        Trainer::new(config, &mut arena).map_err(|e| core_error(&source.info().name, e))?;
+    train::load_frames(&mut trainer, &frames)?;
+    drop(frames);
+    for step in 0..config.steps {
+        trainer
+            .step(executor)
+            .map_err(|e| core_error(&source.info().name, e))?;
+        on_step(step);
+    }
+    let views = held_out_views(source, state);
+    held_out_quality(&mut trainer, executor, &views, state.settings.fit_steps)
+}

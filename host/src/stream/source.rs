@@ -1,0 +1,390 @@
+//! Where streamed frames come from, one at a time and in arrival order: a dataset folder
+//! (optionally paced at a fixed rate), a folder being watched while files appear in it, or the
+//! simulator rendering a preset frame by frame. No source holds more than the frame it hands
+//! out; a held-out frame is read (or rendered) again when it is scored.
+//!
+//! **Watched folder format.** The folder holds `camera.json` (SPEED+ camera file) and, per
+//! frame, an image `NAME.png` (or `.jpg`) and a label `NAME.json`: one SPEED+ label object
+//! (`filename`, `q_vbs2tango_true` or `q_vbs2tango`, `r_Vo2To_vbs_true` or `r_Vo2To_vbs`).
+//! Frames arrive in the order of their names (`img000001`, `img000002`, ...). A frame whose
+//! files are not both there and readable yet is waited for (up to a grace period, since a
+//! writer may be half-way through) before it is reported as bad. The stream ends when a file
+//! named `END` appears and every frame before it is in, after an idle timeout with nothing new,
+//! or at a maximum frame count.
+
+use crate::dataset::Frame;
+use crate::error::{HostError, Result};
+use crate::sim::{FrameSimulator, Scene};
+use crate::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+/// What the trainer needs to know about a source before the first frame.
+#[derive(Clone, Debug)]
+pub struct SourceInfo {
+    /// Where the frames come from, for messages.
+    pub name: String,
+    pub scene_min: [f32; 3],
+    pub scene_max: [f32; 3],
+    pub background: [f32; 3],
+    /// Pixels of the largest frame.
+    pub max_pixels: usize,
+    /// Frames the source will deliver, when it knows.
+    pub frames: Option<u64>,
+}
+
+/// One arriving frame: usable, or bad (the error names the file and the problem).
+pub enum Arrival {
+    Frame(Frame),
+    Bad(HostError),
+}
+
+pub trait FrameSource {
+    fn info(&self) -> &SourceInfo;
+    /// The next frame in arrival order, waiting for it if need be; `None` when the stream has
+    /// ended or `stop` was raised while waiting.
+    fn next(&mut self, stop: &AtomicBool) -> Option<Arrival>;
+    /// Frames handed out (or skipped) so far: the position of the next one.
+    fn position(&self) -> u64;
+    /// Skip forward so the next frame is the one at `position` (resuming a stream).
+    fn seek(&mut self, position: u64) -> Result<()>;
+    /// The frame at a past position again (held-out evaluation).
+    fn reload(&self, position: u64) -> Result<Frame>;
+}
+
+/// A SPEED+ / SHIRT / simulator dataset folder, read frame by frame in label order, optionally
+/// paced at `rate` frames per second (pacing never changes what is learned).
+pub struct DatasetSource {
+    reader: SpeedPlusReader,
+    info: SourceInfo,
+    next: u64,
+    rate: Option<f64>,
+    paced_since: Option<(Instant, u64)>,
+}
+
+impl DatasetSource {
+    pub fn open(path: &Path, width: Option<u32>, rate: Option<f64>) -> Result<DatasetSource> {
+        let options = LoadOptions {
+            width,
+            domain: None,
+        };
+        let reader = SpeedPlusReader::open(path, &options)?;
+        let (scene_min, scene_max) = reader.scene_box();
+        let info = SourceInfo {
+            name: path.display().to_string(),
+            scene_min,
+            scene_max,
+            background: [0.0; 3],
+            max_pixels: reader.decoder.output_camera().pixel_count(),
+            frames: Some(reader.len() as u64),
+        };
+        Ok(DatasetSource {
+            reader,
+            info,
+            next: 0,
+            rate: rate.filter(|r| r.is_finite() && *r > 0.0),
+            paced_since: None,
+        })
+    }
+}
+
+impl FrameSource for DatasetSource {
+    fn info(&self) -> &SourceInfo {
+        &self.info
+    }
+
+    fn next(&mut self, stop: &AtomicBool) -> Option<Arrival> {
+        if self.next >= self.reader.len() as u64 || stop.load(Ordering::SeqCst) {
+            return None;
+        }
+        if let Some(rate) = self.rate {
+            let (start, first) = *self.paced_since.get_or_insert((Instant::now(), self.next));
+            let due = start + Duration::from_secs_f64((self.next - first) as f64 / rate);
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        }
+        let arrival = match self.reader.frame(self.next as usize) {
+            Ok(frame) => Arrival::Frame(frame),
+            Err(e) => Arrival::Bad(e),
+        };
+        self.next += 1;
+        Some(arrival)
+    }
+
+    fn position(&self) -> u64 {
+        self.next
+    }
+
+    fn seek(&mut self, position: u64) -> Result<()> {
+        self.next = position;
+        Ok(())
+    }
+
+    fn reload(&self, position: u64) -> Result<Frame> {
+        self.reader.frame(position as usize)
+    }
+}
+
+/// The simulator, rendering the frames of a scene one by one as the stream asks for them.
+pub struct SimulatorSource<'s> {
+    simulator: FrameSimulator<'s>,
+    decoder: FrameDecoder,
+    info: SourceInfo,
+    frames: u32,
+    next: u32,
+}
+
+impl<'s> SimulatorSource<'s> {
+    pub fn new(scene: &'s Scene) -> Result<SimulatorSource<'s>> {
+        let simulator = FrameSimulator::new(scene)?;
+        let decoder = FrameDecoder::new(simulator.camera_file().clone(), None);
+        let (scene_min, scene_max) = simulator.scene_box();
+        let info = SourceInfo {
+            name: format!("simulated {}", scene.origin.display()),
+            scene_min,
+            scene_max,
+            background: [0.0; 3],
+            max_pixels: decoder.output_camera().pixel_count(),
+            frames: Some(scene.spec.frames as u64),
+        };
+        Ok(SimulatorSource {
+            simulator,
+            decoder,
+            info,
+            frames: scene.spec.frames,
+            next: 0,
+        })
+    }
+
+    fn frame(&self, index: u32) -> Result<Frame> {
+        let simulated = self.simulator.render(index);
+        let name = PathBuf::from(&simulated.filename);
+        let pose = simulated
+            .label
+            .pose()
+            .ok_or_else(|| HostError::field(&name, "q_vbs2tango_true", "not a valid pose"))?;
+        let camera = self.decoder.output_camera();
+        let (w, h) = (camera.width as u32, camera.height as u32);
+        let image = &simulated.image;
+        let rgb: Vec<u8> = match image.channels {
+            1 => image.pixels.iter().flat_map(|&v| [v, v, v]).collect(),
+            _ => image.pixels.clone(),
+        };
+        let rgb = image::RgbImage::from_raw(w, h, rgb)
+            .ok_or_else(|| HostError::invalid(&name, "rendered image has the wrong size"))?;
+        let mask = image::GrayImage::from_raw(w, h, image.mask.clone())
+            .ok_or_else(|| HostError::invalid(&name, "rendered mask has the wrong size"))?;
+        self.decoder.from_images(
+            simulated.filename.clone(),
+            pose,
+            (&name, &rgb),
+            Some((&name, &mask)),
+        )
+    }
+}
+
+impl FrameSource for SimulatorSource<'_> {
+    fn info(&self) -> &SourceInfo {
+        &self.info
+    }
+
+    fn next(&mut self, stop: &AtomicBool) -> Option<Arrival> {
+        if self.next >= self.frames || stop.load(Ordering::SeqCst) {
+            return None;
+        }
+        let arrival = match self.frame(self.next) {
+            Ok(frame) => Arrival::Frame(frame),
+            Err(e) => Arrival::Bad(e),
+        };
+        self.next += 1;
+        Some(arrival)
+    }
+
+    fn position(&self) -> u64 {
+        self.next as u64
+    }
+
+    fn seek(&mut self, position: u64) -> Result<()> {
+        self.next = position.min(self.frames as u64) as u32;
+        Ok(())
+    }
+
+    fn reload(&self, position: u64) -> Result<Frame> {
+        self.frame(position as u32)
+    }
+}
+
+/// When a watched-folder stream ends and how patiently it waits.
+#[derive(Clone, Copy, Debug)]
+pub struct WatchOptions {
+    /// How often the folder is listed.
+    pub poll: Duration,
+    /// How long an incomplete or unreadable frame is waited for before it is reported bad.
+    pub grace: Duration,
+    /// End the stream after this long with no new file.
+    pub idle_timeout: Duration,
+}
+
+/// Image extensions a watched folder's frames may have.
+const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+/// The file whose appearance ends a watched-folder stream.
+pub const END_MARKER: &str = "END";
+
+/// A folder watched for new frames (see the module docs for its format).
+pub struct WatchedFolder {
+    dir: PathBuf,
+    decoder: FrameDecoder,
+    info: SourceInfo,
+    options: WatchOptions,
+    /// Frame names handed out so far, in arrival order.
+    names: Vec<String>,
+}
+
+impl WatchedFolder {
+    /// Open `dir` (its `camera.json` must be there), resizing frames to `width`. The scene box
+    /// is TANGO's unless the folder has a simulator `truth.json`.
+    pub fn open(dir: &Path, width: Option<u32>, options: WatchOptions) -> Result<WatchedFolder> {
+        let camera = SpeedCamera::read(&dir.join("camera.json"))?;
+        let decoder = FrameDecoder::new(camera, width);
+        let truth = dir.join("truth.json");
+        let (scene_min, scene_max) = if truth.is_file() {
+            let truth = speedplus::Truth::read(&truth)?;
+            (truth.target_box_min, truth.target_box_max)
+        } else {
+            speedplus::TANGO_SCENE_BOX
+        };
+        let info = SourceInfo {
+            name: dir.display().to_string(),
+            scene_min,
+            scene_max,
+            background: [0.0; 3],
+            max_pixels: decoder.output_camera().pixel_count(),
+            frames: None,
+        };
+        Ok(WatchedFolder {
+            dir: dir.to_path_buf(),
+            decoder,
+            info,
+            options,
+            names: Vec::new(),
+        })
+    }
+
+    /// Names of the frames with at least one file in the folder, sorted.
+    fn listed(&self) -> Result<Vec<String>> {
+        let mut names: Vec<String> = std::fs::read_dir(&self.dir)
+            .map_err(|e| HostError::io(&self.dir, e))?
+            .filter_map(|entry| {
+                let path = entry.ok()?.path();
+                let extension = path.extension()?.to_str()?.to_ascii_lowercase();
+                let stem = path.file_stem()?.to_str()?.to_owned();
+                let is_frame_file = IMAGE_EXTENSIONS.contains(&extension.as_str())
+                    || (extension == "json" && stem != "camera" && stem != "truth");
+                // Temporary files of writers (`name.png.tmp`, `.name.png`) are not frames.
+                (is_frame_file && !stem.starts_with('.') && !stem.contains('.')).then_some(stem)
+            })
+            .collect();
+        names.sort();
+        names.dedup();
+        Ok(names)
+    }
+
+    fn image_path(&self, name: &str) -> Option<PathBuf> {
+        IMAGE_EXTENSIONS
+            .iter()
+            .map(|ext| self.dir.join(format!("{name}.{ext}")))
+            .find(|path| path.is_file())
+    }
+
+    /// The frame called `name`, if its files are complete and valid.
+    fn read(&self, name: &str) -> Result<Frame> {
+        let label_path = self.dir.join(format!("{name}.json"));
+        let image_path = self
+            .image_path(name)
+            .ok_or_else(|| HostError::invalid(self.dir.join(name), "missing image"))?;
+        if !label_path.is_file() {
+            return Err(HostError::invalid(&label_path, "missing label"));
+        }
+        let label = speedplus::read_label(&label_path)?;
+        let pose = label
+            .pose()
+            .ok_or_else(|| HostError::field(&label_path, "q_vbs2tango_true", "not a valid pose"))?;
+        self.decoder
+            .decode(image_path.display().to_string(), pose, &image_path, None)
+    }
+}
+
+impl FrameSource for WatchedFolder {
+    fn info(&self) -> &SourceInfo {
+        &self.info
+    }
+
+    fn next(&mut self, stop: &AtomicBool) -> Option<Arrival> {
+        let mut last_change = Instant::now();
+        // The frame being waited for and when it was first seen.
+        let mut pending: Option<(String, Instant)> = None;
+        while !stop.load(Ordering::SeqCst) {
+            let listed = match self.listed() {
+                Ok(listed) => listed,
+                Err(e) => return Some(Arrival::Bad(e)),
+            };
+            let newest = self.names.last();
+            let candidate = listed
+                .into_iter()
+                .find(|name| newest.is_none_or(|last| name > last));
+            match candidate {
+                Some(name) => {
+                    let since = match &pending {
+                        Some((waiting, since)) if *waiting == name => *since,
+                        _ => Instant::now(),
+                    };
+                    let result = self.read(&name);
+                    if result.is_ok() || since.elapsed() >= self.options.grace {
+                        self.names.push(name);
+                        return Some(match result {
+                            Ok(frame) => Arrival::Frame(frame),
+                            Err(e) => Arrival::Bad(e),
+                        });
+                    }
+                    pending = Some((name, since));
+                    last_change = Instant::now();
+                }
+                None => {
+                    if self.dir.join(END_MARKER).exists()
+                        || last_change.elapsed() >= self.options.idle_timeout
+                    {
+                        return None;
+                    }
+                }
+            }
+            std::thread::sleep(self.options.poll);
+        }
+        None
+    }
+
+    fn position(&self) -> u64 {
+        self.names.len() as u64
+    }
+
+    fn seek(&mut self, position: u64) -> Result<()> {
+        let listed = self.listed()?;
+        if (listed.len() as u64) < position {
+            return Err(HostError::invalid(
+                &self.dir,
+                format!(
+                    "cannot resume at frame {position}: the folder holds only {}",
+                    listed.len()
+                ),
+            ));
+        }
+        self.names = listed.into_iter().take(position as usize).collect();
+        Ok(())
+    }
+
+    fn reload(&self, position: u64) -> Result<Frame> {
+        let name = self.names.get(position as usize).ok_or_else(|| {
+            HostError::invalid(&self.dir, format!("no frame at position {position}"))
+        })?;
+        self.read(name)
+    }
+}

@@ -1,0 +1,373 @@
+//! `orbit-nerf stream`: ingest frames one at a time from a dataset folder, a watched folder or
+//! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
+//! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
+
+use indicatif::{ProgressBar, ProgressStyle};
+use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
+use orbit_nerf_host::ablation::APPEARANCE_POSE;
+use orbit_nerf_host::report::ViewMetrics;
+use orbit_nerf_host::sim::Scene;
+use orbit_nerf_host::stream::{
+    self, Control, DatasetSource, Event, Fate, FrameSource, Outcome, SimulatorSource,
+    StreamSettings, StreamState, WatchOptions, WatchedFolder,
+};
+use orbit_nerf_host::train::{self, RayonExecutor};
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+#[derive(clap::Args, Debug, Clone)]
+#[command(group(clap::ArgGroup::new("source").required(true).args(["scene", "data", "watch"])))]
+pub struct StreamArgs {
+    /// Simulate this scene (a preset or a scene file) frame by frame.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Stream a SPEED+ / SHIRT / simulator dataset folder in label order.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Watch this folder for new frames (camera.json, NAME.png + NAME.json per frame; ends
+    /// on a file named END, after --idle-timeout, or at --max-frames).
+    #[arg(long)]
+    pub watch: Option<PathBuf>,
+    /// Frames to simulate (--scene).
+    #[arg(long, default_value_t = 120)]
+    pub frames: u32,
+    /// Image size in pixels (simulated size, or the width dataset frames are resized to).
+    #[arg(long, default_value_t = 128)]
+    pub size: u16,
+    /// Frame slots of the core's store.
+    #[arg(long, default_value_t = 40)]
+    pub store: u16,
+    /// Replacement policy of a full store.
+    #[arg(long, value_enum, default_value_t = Policy::Novelty)]
+    pub policy: Policy,
+    /// Training steps after each usable frame.
+    #[arg(long, default_value_t = 17)]
+    pub steps_per_frame: u32,
+    /// Every N-th usable frame is held out for the anytime-quality curve.
+    #[arg(long, default_value_t = 8)]
+    pub holdout: u64,
+    /// Score the held-out views every K usable frames.
+    #[arg(long, default_value_t = 20)]
+    pub eval_every: u64,
+    /// Write the checkpoint every N arrivals (and always when stopping).
+    #[arg(long, default_value_t = 10)]
+    pub checkpoint_every: u64,
+    /// Steps fitting a held-out view's appearance embedding on its left half.
+    #[arg(long, default_value_t = 50)]
+    pub fit_steps: u32,
+    /// Pace a dataset folder at this many frames per second (does not change the result).
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Watched folder: listing interval in milliseconds.
+    #[arg(long, default_value_t = 150)]
+    pub poll_ms: u64,
+    /// Watched folder: how long an incomplete frame is waited for before it is reported bad.
+    #[arg(long, default_value_t = 2000)]
+    pub grace_ms: u64,
+    /// Watched folder: end after this many seconds without a new file.
+    #[arg(long, default_value_t = 30.0)]
+    pub idle_timeout: f64,
+    /// End the stream after this many arrivals.
+    #[arg(long)]
+    pub max_frames: Option<u64>,
+    /// Stop (and checkpoint) after this many arrivals, as Ctrl-C would; resume with --resume.
+    #[arg(long)]
+    pub stop_after: Option<u64>,
+    /// Continue the stream saved in OUT/checkpoint.onrf (same source; its config and
+    /// settings are used).
+    #[arg(long)]
+    pub resume: bool,
+    /// After the stream, train a model offline on all its training frames with the same
+    /// number of steps and compare the held-out quality.
+    #[arg(long)]
+    pub compare_offline: bool,
+    /// Model config (TOML, every field); default: the built-in config with the method's
+    /// appearance embeddings and pose correction.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Random seed of the model (overrides the config).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Worker threads (results do not depend on it).
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md.
+    #[arg(long, default_value = "runs/stream")]
+    pub out: PathBuf,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Policy {
+    Fifo,
+    Novelty,
+}
+
+impl From<Policy> for Replacement {
+    fn from(policy: Policy) -> Replacement {
+        match policy {
+            Policy::Fifo => Replacement::Fifo,
+            Policy::Novelty => Replacement::Novelty,
+        }
+    }
+}
+
+type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
+
+/// Raised by Ctrl-C / SIGTERM: the stream stops after the current frame and checkpoints.
+static STOP: AtomicBool = AtomicBool::new(false);
+
+pub fn run(args: &StreamArgs) -> Fallible<()> {
+    ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?;
+    let width = Some(args.size as u32);
+    if let Some(name) = &args.scene {
+        let mut scene = Scene::load(name)?;
+        scene.spec.frames = args.frames;
+        scene.spec.size = args.size;
+        let mut source = SimulatorSource::new(&scene)?;
+        stream_from(args, &mut source)
+    } else if let Some(dir) = &args.data {
+        stream_from(args, &mut DatasetSource::open(dir, width, args.rate)?)
+    } else if let Some(dir) = &args.watch {
+        let options = WatchOptions {
+            poll: Duration::from_millis(args.poll_ms.max(1)),
+            grace: Duration::from_millis(args.grace_ms),
+            idle_timeout: Duration::from_secs_f64(args.idle_timeout.max(0.0)),
+        };
+        stream_from(args, &mut WatchedFolder::open(dir, width, options)?)
+    } else {
+        Err("give a source: --scene, --data or --watch".into())
+    }
+}
+
+fn model_config(args: &StreamArgs) -> Fallible<Config> {
+    let mut config = match &args.config {
+        Some(path) => train::read_config(path)?,
+        None => Config {
+            embedding_dim: APPEARANCE_POSE.embedding_dim,
+            pose_correction: APPEARANCE_POSE.pose_correction,
+            ..Config::DEFAULT
+        },
+    };
+    if let Some(seed) = args.seed {
+        config.seed = seed;
+    }
+    Ok(config)
+}
+
+fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
+    let checkpoint_path = args.out.join("checkpoint.onrf");
+    let (config, mut state, restored) = if args.resume {
+        let (checkpoint, config, state) = stream::load(&checkpoint_path)?;
+        source.seek(state.position)?;
+        (config, state, Some(checkpoint))
+    } else {
+        let mut info = source.info().clone();
+        info.frames = info.frames.or(args.max_frames);
+        let config = stream::stream_config(
+            &model_config(args)?,
+            &info,
+            args.store,
+            args.policy.into(),
+            args.steps_per_frame,
+        );
+        let settings = StreamSettings {
+            steps_per_frame: args.steps_per_frame,
+            holdout_every: args.holdout,
+            eval_every: args.eval_every,
+            checkpoint_every: args.checkpoint_every,
+            fit_steps: args.fit_steps,
+        };
+        (
+            config,
+            StreamState::new(settings, config.max_frames as usize),
+            None,
+        )
+    };
+    let executor = RayonExecutor::new(args.threads)?;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
+    if let Some(checkpoint) = &restored {
+        train::restore_checkpoint(&checkpoint_path, checkpoint, &mut trainer)?;
+        println!(
+            "resuming {} at arrival {} ({} steps done)",
+            checkpoint_path.display(),
+            state.position,
+            trainer.state().step
+        );
+    }
+    println!(
+        "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
+        source.info().name,
+        config.max_frames,
+        config.replacement,
+        state.settings.steps_per_frame,
+        args.threads,
+        plan.total as f64 / (1 << 20) as f64
+    );
+    let bar = match source.info().frames.or(args.max_frames) {
+        Some(frames) => ProgressBar::new(frames),
+        None => ProgressBar::no_length(),
+    }
+    .with_style(
+        ProgressStyle::with_template("stream [{bar:30}] {pos}/{len} frames {per_sec} {msg}")?
+            .progress_chars("=> "),
+    );
+    bar.set_position(state.position);
+    let start = Instant::now();
+    let control = Control {
+        stop: &STOP,
+        stop_after: args.stop_after,
+        end_after: args.max_frames,
+        checkpoint: &checkpoint_path,
+    };
+    let mut last_quality = String::from("no held-out score yet");
+    let outcome = stream::run(
+        &mut trainer,
+        &executor,
+        source,
+        &mut state,
+        &control,
+        &mut |event| match event {
+            Event::Frame { fate, mse, .. } => {
+                let fate = match fate {
+                    Fate::Stored { slot, .. } => format!("-> slot {slot}"),
+                    Fate::Rejected => "rejected".into(),
+                    Fate::HeldOut => "held out".into(),
+                };
+                bar.set_message(format!("{fate:>12}, loss {mse:.5}, {last_quality}"));
+                bar.inc(1);
+            }
+            Event::Bad(bad) => {
+                // `suspend` prints also when the bar is hidden (output not a terminal).
+                bar.suspend(|| println!("bad frame {}: {}", bad.position, bad.message));
+                bar.inc(1);
+            }
+            Event::Anytime(point) => {
+                last_quality = format!("held-out {:.2} dB", point.psnr);
+                bar.suspend(|| println!(
+                    "{:>4} frames seen, {:>3} held, {:>5} steps: held-out PSNR {:.2} dB, SSIM {:.4} ({} views), {:.2} s/frame, RSS {:.1} MiB",
+                    point.frames_seen,
+                    point.frames_held,
+                    point.steps,
+                    point.psnr,
+                    point.ssim,
+                    point.held_out_views,
+                    point.seconds_per_frame,
+                    point.rss_mib
+                ));
+            }
+            Event::Checkpoint(_) => {}
+        },
+    )?;
+    bar.finish_and_clear();
+    let seconds = start.elapsed().as_secs_f64();
+    stream::write_curve(&args.out, &state.curve)?;
+    if outcome == Outcome::Stopped {
+        println!(
+            "stopped after {} arrivals; checkpoint {} (continue with --resume)",
+            state.position,
+            checkpoint_path.display()
+        );
+        return Ok(());
+    }
+    let offline = if args.compare_offline {
+        Some(offline(
+            source,
+            &state,
+            &config,
+            trainer.state().step,
+            &executor,
+        )?)
+    } else {
+        None
+    };
+    let summary = summary(&state, &trainer, seconds, offline.as_ref());
+    orbit_nerf_host::io::write_atomic(&args.out.join("summary.md"), summary.as_bytes())?;
+    print!("{summary}");
+    println!(
+        "checkpoint, anytime.csv, anytime.png and summary.md in {}",
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Train and score the offline reference, with a progress bar.
+fn offline(
+    source: &dyn FrameSource,
+    state: &StreamState,
+    config: &Config,
+    steps: u32,
+    executor: &RayonExecutor,
+) -> Fallible<(ViewMetrics, f64)> {
+    let bar = ProgressBar::new(steps as u64).with_style(
+        ProgressStyle::with_template("offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}")?
+            .progress_chars("=> "),
+    );
+    let start = Instant::now();
+    let metrics =
+        stream::offline_reference(source, state, config, steps, executor, &mut |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    Ok((metrics, start.elapsed().as_secs_f64()))
+}
+
+fn summary(
+    state: &StreamState,
+    trainer: &Trainer<'_>,
+    seconds: f64,
+    offline: Option<&(ViewMetrics, f64)>,
+) -> String {
+    let mut text = String::from("# Stream summary\n\n");
+    let _ = writeln!(
+        text,
+        "- {} arrivals: {} usable ({} held out, {} offered to the store: {} stored, {} turned away), {} bad",
+        state.position,
+        state.usable,
+        state.held_out.len(),
+        state.offered,
+        state.stored,
+        state.rejected,
+        state.bad.len()
+    );
+    let _ = writeln!(
+        text,
+        "- {} frames held at the end, {} training steps, {:.1} s wall time ({:.2} s per arrival)",
+        trainer.frames().len(),
+        trainer.state().step,
+        seconds,
+        seconds / state.position.max(1) as f64
+    );
+    for bad in &state.bad {
+        let _ = writeln!(text, "- bad frame {}: {}", bad.position, bad.message);
+    }
+    if let Some(last) = state.curve.last() {
+        let _ = writeln!(
+            text,
+            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, on {} views",
+            last.psnr, last.psnr_right, last.ssim, last.held_out_views
+        );
+    }
+    if let Some((metrics, offline_seconds)) = offline {
+        let _ = writeln!(
+            text,
+            "- offline reference (all training frames at once, same steps, {offline_seconds:.1} s): held-out PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}",
+            metrics.psnr_full, metrics.psnr_right, metrics.ssim_full
+        );
+    }
+    if let (Some(first), Some(last)) = (
+        state
+            .curve
+            .iter()
+            .find(|p| p.frames_seen >= trainer.config().max_frames as u64),
+        state.curve.last(),
+    ) {
+        let _ = writeln!(
+            text,
+            "- resident memory: {:.1} MiB at {} frames seen, {:.1} MiB at {}",
+            first.rss_mib, first.frames_seen, last.rss_mib, last.frames_seen
+        );
+    }
+    text
+}

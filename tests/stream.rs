@@ -1,0 +1,470 @@
+//! Streaming end to end: kill-and-resume equals an uninterrupted run bit for bit (through the
+//! host API with a deterministic stop, and through the binary with a real SIGTERM), a watched
+//! folder ingests frames written while it trains, in order, and every kind of bad frame is
+//! reported once and skipped while the stream goes on.
+
+use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
+use orbit_nerf_host::checkpoint;
+use orbit_nerf_host::sim::{self, Scene};
+use orbit_nerf_host::speedplus::{self, Label};
+use orbit_nerf_host::stream::{
+    self, Control, DatasetSource, Event, FrameSource, Outcome, StreamSettings, StreamState,
+    WatchOptions, WatchedFolder,
+};
+use orbit_nerf_host::train::{self, RayonExecutor};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The simulator's camera file comes from the shared data; without it these tests skip.
+fn have_shared_data() -> bool {
+    let present = root()
+        .join("../shared/data/speedplus/camera.json")
+        .is_file();
+    if !present {
+        eprintln!("skipping: ../shared/data not found");
+    }
+    present
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("orbit-nerf-stream-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A simulated lightbox set of `frames` frames of 32 px.
+fn simulated_set(dir: &Path, frames: u32) {
+    let mut scene = Scene::load("lightbox").unwrap();
+    scene.spec.frames = frames;
+    scene.spec.size = 32;
+    sim::simulate(&scene, dir, &|| {}).unwrap();
+}
+
+/// The tiny profile with small per-frame embeddings and pose correction, so per-frame state
+/// is recycled with the slots.
+fn base_config() -> Config {
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.embedding_dim = 4;
+    config.pose_correction = true;
+    config
+}
+
+fn settings() -> StreamSettings {
+    StreamSettings {
+        steps_per_frame: 3,
+        holdout_every: 8,
+        eval_every: 5,
+        checkpoint_every: 4,
+        fit_steps: 2,
+    }
+}
+
+/// Stream `source` into a fresh trainer (or the one saved at `checkpoint` when `resume`),
+/// stopping after `stop_after` arrivals; returns the outcome and the final state.
+fn stream_api(
+    source: &mut dyn FrameSource,
+    store: u16,
+    checkpoint: &Path,
+    stop_after: Option<u64>,
+    resume: bool,
+    events: &mut dyn FnMut(&Event<'_>),
+) -> (Outcome, StreamState) {
+    let (config, mut state, restored) = if resume {
+        let (saved, config, state) = stream::load(checkpoint).unwrap();
+        source.seek(state.position).unwrap();
+        (config, state, Some(saved))
+    } else {
+        let config = stream::stream_config(
+            &base_config(),
+            source.info(),
+            store,
+            Replacement::Novelty,
+            settings().steps_per_frame,
+        );
+        let state = StreamState::new(settings(), store as usize);
+        (config, state, None)
+    };
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    if let Some(saved) = &restored {
+        train::restore_checkpoint(checkpoint, saved, &mut trainer).unwrap();
+    }
+    let stop = AtomicBool::new(false);
+    let control = Control {
+        stop: &stop,
+        stop_after,
+        end_after: None,
+        checkpoint,
+    };
+    let executor = RayonExecutor::new(2).unwrap();
+    let outcome = stream::run(
+        &mut trainer,
+        &executor,
+        source,
+        &mut state,
+        &control,
+        events,
+    )
+    .unwrap();
+    (outcome, state)
+}
+
+/// The trainer's sections of a checkpoint (everything but the stream's own record, which
+/// also holds wall times).
+fn trainer_sections(path: &Path) -> Vec<(String, Vec<u8>)> {
+    checkpoint::load(path)
+        .unwrap()
+        .sections
+        .into_iter()
+        .filter(|s| s.name != stream::STREAM_SECTION)
+        .map(|s| (s.name, s.bytes))
+        .collect()
+}
+
+/// The parts of a stream's state that must not depend on where it was interrupted.
+fn deterministic_part(state: &StreamState) -> impl PartialEq + std::fmt::Debug {
+    (
+        state.position,
+        state.usable,
+        state.offered,
+        state.stored,
+        state.rejected,
+        state.held_out.clone(),
+        state.slot_positions.clone(),
+        state
+            .curve
+            .iter()
+            .map(|p| (p.frames_seen, p.frames_held, p.steps, p.psnr.to_bits()))
+            .collect::<Vec<_>>(),
+    )
+}
+
+#[test]
+fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
+    if !have_shared_data() {
+        return;
+    }
+    let dir = temp_dir("resume");
+    let data = dir.join("data");
+    simulated_set(&data, 30);
+    let open = || DatasetSource::open(&data, None, None).unwrap();
+
+    let whole = dir.join("whole.onrf");
+    let (outcome, whole_state) = stream_api(&mut open(), 6, &whole, None, false, &mut |_| {});
+    assert_eq!(outcome, Outcome::Finished);
+    // The store filled and the policy had to choose; held-out views were scored on the way.
+    assert_eq!(whole_state.position, 30);
+    assert_eq!(whole_state.held_out.len(), 3);
+    assert!(
+        whole_state.stored > 6 && whole_state.rejected > 0,
+        "{whole_state:?}"
+    );
+    assert!(whole_state.curve.len() >= 6);
+
+    // Stopped after 13 arrivals (past two scorings and three checkpoints), then resumed.
+    let parts = dir.join("parts.onrf");
+    let (outcome, stopped) = stream_api(&mut open(), 6, &parts, Some(13), false, &mut |_| {});
+    assert_eq!((outcome, stopped.position), (Outcome::Stopped, 13));
+    let (outcome, resumed) = stream_api(&mut open(), 6, &parts, None, true, &mut |_| {});
+    assert_eq!(outcome, Outcome::Finished);
+    assert_eq!(
+        deterministic_part(&resumed),
+        deterministic_part(&whole_state)
+    );
+    assert!(
+        trainer_sections(&parts) == trainer_sections(&whole),
+        "the resumed run's parameters, moments, occupancy or frames differ"
+    );
+    // Pacing the source changes nothing either.
+    let paced = dir.join("paced.onrf");
+    let mut paced_source = DatasetSource::open(&data, None, Some(200.0)).unwrap();
+    stream_api(&mut paced_source, 6, &paced, None, false, &mut |_| {});
+    assert!(trainer_sections(&paced) == trainer_sections(&whole));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn orbit_nerf(args: &[&str]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_orbit-nerf"));
+    command.args(args).current_dir(env!("CARGO_MANIFEST_DIR"));
+    command
+}
+
+fn output_text(out: &std::process::Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+#[test]
+fn sigterm_stops_the_binary_with_a_checkpoint_and_resume_matches_an_uninterrupted_run() {
+    if !have_shared_data() {
+        return;
+    }
+    let dir = temp_dir("sigterm");
+    let config = dir.join("model.toml");
+    std::fs::write(&config, train::config_to_toml(&base_config())).unwrap();
+    let run = |extra: &[&str], out: &Path| {
+        let config = config.to_str().unwrap();
+        let mut args = vec![
+            "stream",
+            "--scene",
+            "lightbox",
+            "--frames",
+            "40",
+            "--size",
+            "32",
+            "--store",
+            "8",
+            "--steps-per-frame",
+            "3",
+            "--eval-every",
+            "10",
+            "--checkpoint-every",
+            "2",
+            "--fit-steps",
+            "2",
+            "--config",
+            config,
+            "--out",
+        ];
+        args.push(out.to_str().unwrap());
+        args.extend_from_slice(extra);
+        orbit_nerf(&args)
+    };
+
+    let whole = dir.join("whole");
+    let out = run(&[], &whole).output().unwrap();
+    assert!(out.status.success(), "{}", output_text(&out));
+
+    let parts = dir.join("parts");
+    let child = run(&[], &parts)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Terminate once the first checkpoint is there: the run is under way.
+    while !parts.join("checkpoint.onrf").is_file() {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = child.wait_with_output().unwrap();
+    let text = output_text(&out);
+    assert!(out.status.success(), "{text}");
+    // (If the run had already finished, there would be nothing to resume: the test is only
+    // meaningful when SIGTERM arrived mid-stream, which 40 frames make certain.)
+    assert!(text.contains("stopped after"), "{text}");
+    let out = run(&["--resume"], &parts).output().unwrap();
+    let text = output_text(&out);
+    assert!(out.status.success() && text.contains("resuming"), "{text}");
+    assert!(
+        trainer_sections(&parts.join("checkpoint.onrf"))
+            == trainer_sections(&whole.join("checkpoint.onrf")),
+        "the resumed binary's final state differs from the uninterrupted one"
+    );
+    assert!(parts.join("anytime.csv").is_file() && parts.join("anytime.png").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Write `bytes` to `path` the way a careful producer does: a temporary name, then rename.
+fn publish(path: &Path, bytes: &[u8]) {
+    let tmp = path.with_extension("part");
+    std::fs::write(&tmp, bytes).unwrap();
+    std::fs::rename(&tmp, path).unwrap();
+}
+
+fn label_json(label: &Label) -> Vec<u8> {
+    serde_json::to_vec(label).unwrap()
+}
+
+/// A simulated set of `frames` frames in `dir/data`, its labels, and an empty watched folder
+/// `dir/watched` with the set's camera file.
+fn empty_watched_folder(dir: &Path, frames: u32) -> (PathBuf, Vec<Label>, PathBuf) {
+    let data = dir.join("data");
+    simulated_set(&data, frames);
+    let labels = speedplus::read_labels(&data.join("labels.json")).unwrap();
+    let watched = dir.join("watched");
+    std::fs::create_dir_all(&watched).unwrap();
+    std::fs::copy(data.join("camera.json"), watched.join("camera.json")).unwrap();
+    (data, labels, watched)
+}
+
+fn watch_options(grace_ms: u64) -> WatchOptions {
+    WatchOptions {
+        poll: Duration::from_millis(20),
+        grace: Duration::from_millis(grace_ms),
+        idle_timeout: Duration::from_secs(30),
+    }
+}
+
+#[test]
+fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
+    if !have_shared_data() {
+        return;
+    }
+    let dir = temp_dir("watch");
+    let (data, labels, watched) = empty_watched_folder(&dir, 12);
+
+    let writer = {
+        let (data, watched, labels) = (data.clone(), watched.clone(), labels.clone());
+        std::thread::spawn(move || {
+            for (k, label) in labels.iter().enumerate() {
+                std::thread::sleep(Duration::from_millis(60));
+                let stem = label.filename.trim_end_matches(".png");
+                let image = std::fs::read(data.join("images").join(&label.filename)).unwrap();
+                publish(&watched.join(&label.filename), &image);
+                // Every third frame's label comes late: the frame is waited for, not bad.
+                if k % 3 == 0 {
+                    std::thread::sleep(Duration::from_millis(150));
+                }
+                publish(&watched.join(format!("{stem}.json")), &label_json(label));
+            }
+            publish(&watched.join("END"), b"");
+        })
+    };
+    let mut source = WatchedFolder::open(&watched, None, watch_options(5000)).unwrap();
+    let mut names = Vec::new();
+    let mut bad = Vec::new();
+    let (outcome, state) = stream_api(
+        &mut source,
+        4,
+        &dir.join("watch.onrf"),
+        None,
+        false,
+        &mut |event| match event {
+            Event::Frame { name, .. } => names.push(name.to_string()),
+            Event::Bad(b) => bad.push(b.message.clone()),
+            _ => {}
+        },
+    );
+    writer.join().unwrap();
+    assert_eq!(outcome, Outcome::Finished);
+    assert!(bad.is_empty(), "{bad:?}");
+    let expected: Vec<String> = labels
+        .iter()
+        .map(|l| watched.join(&l.filename).display().to_string())
+        .collect();
+    assert_eq!(names, expected, "every frame, in the order written");
+    assert_eq!((state.position, state.usable), (12, 12));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
+    if !have_shared_data() {
+        return;
+    }
+    let dir = temp_dir("bad");
+    let (data, labels, watched) = empty_watched_folder(&dir, 10);
+    let png = |width: u32, value: u8| {
+        let mut bytes = Vec::new();
+        image::GrayImage::from_pixel(width, width, image::Luma([value]))
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        bytes
+    };
+    // Frames 1, 3, 5, ... are broken, each in its own way; the even ones are good.
+    let problems: [(&str, &str); 7] = [
+        ("unreadable image", "cannot decode image"),
+        ("wrong size", "image is 20x20"),
+        ("missing label", "missing label"),
+        ("malformed label", "malformed JSON"),
+        ("NaN pose", "q_vbs2tango_true"),
+        ("all black", "all black"),
+        ("all saturated", "all saturated"),
+    ];
+    let mut frame = 0;
+    let mut expected_bad = Vec::new();
+    for (k, (problem, _)) in problems.iter().enumerate() {
+        for broken in [false, true] {
+            let label = &labels[frame % labels.len()];
+            let stem = format!("img{:06}", frame + 1);
+            let image_path = watched.join(format!("{stem}.png"));
+            let label_path = watched.join(format!("{stem}.json"));
+            let mut image = std::fs::read(data.join("images").join(&label.filename)).unwrap();
+            let mut label_text = label_json(label);
+            if broken {
+                match *problem {
+                    "unreadable image" => image = b"not a png".to_vec(),
+                    "wrong size" => image = png(20, 128),
+                    "malformed label" => label_text = b"{\"filename\": ".to_vec(),
+                    "NaN pose" => {
+                        label_text = format!(
+                            "{{\"filename\": \"{stem}.png\", \"q_vbs2tango_true\": [NaN, 0, 0, 1], \"r_Vo2To_vbs_true\": [0, 0, 5]}}"
+                        )
+                        .into_bytes()
+                    }
+                    "all black" => image = png(32, 0),
+                    "all saturated" => image = png(32, 255),
+                    _ => {}
+                }
+                expected_bad.push((frame as u64, k));
+            }
+            std::fs::write(&image_path, &image).unwrap();
+            if !(broken && *problem == "missing label") {
+                std::fs::write(&label_path, &label_text).unwrap();
+            }
+            frame += 1;
+        }
+    }
+    std::fs::write(watched.join("END"), b"").unwrap();
+
+    let mut source = WatchedFolder::open(&watched, None, watch_options(200)).unwrap();
+    let mut reported = Vec::new();
+    let (outcome, state) = stream_api(
+        &mut source,
+        4,
+        &dir.join("bad.onrf"),
+        None,
+        false,
+        &mut |event| {
+            if let Event::Bad(b) = event {
+                reported.push((b.position, b.message.clone()));
+            }
+        },
+    );
+    assert_eq!(outcome, Outcome::Finished);
+    assert_eq!(reported.len(), problems.len(), "{reported:#?}");
+    for ((position, message), (expected_position, k)) in reported.iter().zip(&expected_bad) {
+        let (problem, needle) = problems[*k];
+        assert_eq!(position, expected_position, "{problem}: {message}");
+        let stem = format!("img{:06}", position + 1);
+        assert!(
+            message.contains(&stem),
+            "{problem}: names the file: {message}"
+        );
+        assert!(
+            message.contains(needle),
+            "{problem}: names the problem: {message}"
+        );
+        assert_eq!(message.lines().count(), 1, "{problem}: one line: {message}");
+    }
+    // The good frames all went in, and the stream trained after each of them.
+    assert_eq!(state.position, 14);
+    assert_eq!(state.usable, 7);
+    assert_eq!(state.bad.len(), 7);
+    let (_, config, _) = stream::load(&dir.join("bad.onrf")).unwrap();
+    assert_eq!(config.max_frames, 4);
+    let steps = checkpoint::load(&dir.join("bad.onrf"))
+        .unwrap()
+        .section("state")
+        .map(|bytes| u32::from_le_bytes(bytes[..4].try_into().unwrap()))
+        .unwrap();
+    assert_eq!(steps, 7 * settings().steps_per_frame);
+    let _ = std::fs::remove_dir_all(&dir);
+}
