@@ -468,3 +468,38 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
     assert_eq!(steps, 7 * settings().steps_per_frame);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_nerf_synthetic_folder_streams_its_training_split_in_file_order() {
+    let lego = root().join("../shared/data/nerf_synthetic/lego");
+    if !lego.is_dir() {
+        eprintln!("skipping: {} not found", lego.display());
+        return;
+    }
+    let mut source = DatasetSource::open(&lego, Some(40), None).unwrap();
+    assert_eq!(source.info().max_pixels, 40 * 40);
+    assert_eq!(source.info().background, [1.0; 3]);
+    let stop = AtomicBool::new(false);
+    let mut names = Vec::new();
+    for _ in 0..3 {
+        match source.next(&stop) {
+            Some(stream::Arrival::Frame(frame)) => {
+                assert_eq!(frame.pixels.len(), 40 * 40 * 3);
+                names.push(frame.name);
+            }
+            _ => panic!("lego frames read"),
+        }
+    }
+    assert_eq!(
+        names,
+        ["./train/r_0.png", "./train/r_1.png", "./train/r_2.png"]
+    );
+    assert_eq!(source.position(), 3);
+    // A held-out view reads again identically.
+    let first = source.reload(1).unwrap();
+    source.seek(1).unwrap();
+    match source.next(&stop) {
+        Some(stream::Arrival::Frame(again)) => assert_eq!(again.pixels, first.pixels),
+        _ => panic!("lego frame 1 reads again"),
+    }
+}

@@ -91,54 +91,15 @@ pub fn load_nerf_synthetic(
 
 /// Load a NeRF-synthetic `transforms_*.json`. The scene box is K-Planes' [-1.5, 1.5]^3.
 pub fn load_nerf_synthetic_transforms(json_path: &Path, options: &LoadOptions) -> Result<Dataset> {
-    let json = JsonFile::read(json_path)?;
-    let angle_x = json.field_of_view(
-        json.get(&json.root, "camera_angle_x", "camera_angle_x")?,
-        "camera_angle_x",
-    )?;
-    let angle_y = match json.root.get("camera_angle_y") {
-        Some(value) => Some(json.field_of_view(value, "camera_angle_y")?),
-        None => None,
-    };
-    let mut jobs = Vec::new();
-    for (index, frame) in json.frames()?.iter().enumerate() {
-        let path_field = format!("frames[{index}].file_path");
-        let mut name = json
-            .string(json.get(frame, "file_path", &path_field)?, &path_field)?
-            .to_owned();
-        if Path::new(&name).extension().is_none() {
-            name.push_str(".png");
-        }
-        let matrix_field = format!("frames[{index}].transform_matrix");
-        let pose = json.pose(
-            json.get(frame, "transform_matrix", &matrix_field)?,
-            &matrix_field,
-        )?;
-        jobs.push(FrameJob {
-            image: json.resolve(&name),
-            name,
-            mask: None,
-            pose,
-            declared_size: None,
-        });
-    }
-    let decoded = decode_all(&jobs, options)?;
-    let frames = jobs
-        .into_iter()
+    let reader = SyntheticReader::open(json_path, options)?;
+    let decoded = decode_all(&reader.jobs, options)?;
+    let frames = reader
+        .jobs
+        .iter()
         .zip(decoded)
         .map(|(job, image)| {
-            let (src_w, src_h) = (image.source_size.0 as f64, image.source_size.1 as f64);
-            // Focal length in source pixels from the horizontal field of view; the vertical one,
-            // when given, covers non-square sensors.
-            let fx = 0.5 * src_w / (0.5 * angle_x).tan();
-            let fy = angle_y.map_or(fx, |a| 0.5 * src_h / (0.5 * a).tan());
-            let intrinsics = Intrinsics {
-                fx,
-                fy,
-                cx: 0.5 * src_w,
-                cy: 0.5 * src_h,
-            };
-            image.into_frame(job.name, job.pose, intrinsics)
+            let intrinsics = reader.intrinsics(image.source_size);
+            image.into_frame(job.name.clone(), job.pose, intrinsics)
         })
         .collect();
     Ok(Dataset {
@@ -148,6 +109,112 @@ pub fn load_nerf_synthetic_transforms(json_path: &Path, options: &LoadOptions) -
         scene_max: NERF_SYNTHETIC_SCENE_MAX,
         background: options.background,
     })
+}
+
+/// A NeRF-synthetic `transforms_*.json` opened for reading one frame at a time: the JSON is
+/// checked when it opens, an image is decoded only when its frame is asked for.
+pub struct SyntheticReader {
+    jobs: Vec<FrameJob>,
+    angle_x: f64,
+    angle_y: Option<f64>,
+    options: LoadOptions,
+    /// Size of the first image (every frame must have it), when it can be read.
+    first_size: Option<(u32, u32)>,
+}
+
+impl SyntheticReader {
+    pub fn open(json_path: &Path, options: &LoadOptions) -> Result<SyntheticReader> {
+        let json = JsonFile::read(json_path)?;
+        let angle_x = json.field_of_view(
+            json.get(&json.root, "camera_angle_x", "camera_angle_x")?,
+            "camera_angle_x",
+        )?;
+        let angle_y = match json.root.get("camera_angle_y") {
+            Some(value) => Some(json.field_of_view(value, "camera_angle_y")?),
+            None => None,
+        };
+        let mut jobs = Vec::new();
+        for (index, frame) in json.frames()?.iter().enumerate() {
+            let path_field = format!("frames[{index}].file_path");
+            let mut name = json
+                .string(json.get(frame, "file_path", &path_field)?, &path_field)?
+                .to_owned();
+            if Path::new(&name).extension().is_none() {
+                name.push_str(".png");
+            }
+            let matrix_field = format!("frames[{index}].transform_matrix");
+            let pose = json.pose(
+                json.get(frame, "transform_matrix", &matrix_field)?,
+                &matrix_field,
+            )?;
+            jobs.push(FrameJob {
+                image: json.resolve(&name),
+                name,
+                mask: None,
+                pose,
+                declared_size: None,
+            });
+        }
+        let first_size = jobs
+            .first()
+            .and_then(|job| image::image_dimensions(&job.image).ok());
+        Ok(SyntheticReader {
+            jobs,
+            angle_x,
+            angle_y,
+            options: *options,
+            first_size,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.jobs.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.jobs.is_empty()
+    }
+
+    /// Pixels of a frame as produced (from the first image's size).
+    pub fn output_pixels(&self) -> usize {
+        self.first_size.map_or(0, |size| {
+            let (w, h) = output_size(self.options.size, size);
+            w as usize * h as usize
+        })
+    }
+
+    /// Intrinsics in source pixels: focal length from the horizontal field of view; the
+    /// vertical one, when given, covers non-square sensors.
+    fn intrinsics(&self, (w, h): (u32, u32)) -> Intrinsics {
+        let (w, h) = (w as f64, h as f64);
+        let fx = 0.5 * w / (0.5 * self.angle_x).tan();
+        let fy = self.angle_y.map_or(fx, |a| 0.5 * h / (0.5 * a).tan());
+        Intrinsics {
+            fx,
+            fy,
+            cx: 0.5 * w,
+            cy: 0.5 * h,
+        }
+    }
+
+    /// Frame `index`, decoded; its image must have the first image's size.
+    pub fn frame(&self, index: usize) -> Result<Frame> {
+        let job = self.jobs.get(index).ok_or_else(|| {
+            HostError::invalid(PathBuf::from("transforms"), format!("no frame {index}"))
+        })?;
+        let image = decode_frame(job, &self.options)?;
+        if let Some((w, h)) = self.first_size.filter(|&size| size != image.source_size) {
+            return Err(HostError::invalid(
+                &job.image,
+                format!(
+                    "image is {}x{} but {} is {w}x{h}: all frames must have one size",
+                    image.source_size.0, image.source_size.1, self.jobs[0].name
+                ),
+            ));
+        }
+        let intrinsics = self.intrinsics(image.source_size);
+        Ok(image.into_frame(job.name.clone(), job.pose, intrinsics))
+    }
 }
 
 /// Camera models nerfstudio writes that are pinhole projections (plus lens distortion).

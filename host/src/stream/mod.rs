@@ -355,32 +355,33 @@ fn ingest(
     })
 }
 
-/// The held-out frames seen so far, read again from the source (those that still read).
-fn held_out_views<S: FrameSource + ?Sized>(source: &S, state: &StreamState) -> Dataset {
-    let info = source.info();
-    Dataset {
-        source: info.name.clone().into(),
-        frames: state
-            .held_out
-            .iter()
-            .filter_map(|&position| source.reload(position).ok())
-            .collect(),
-        scene_min: info.scene_min,
-        scene_max: info.scene_max,
-        background: info.background,
-    }
-}
-
-/// Mean held-out quality of the current model on `views` (NaN without views).
-pub fn held_out_quality<E: Executor>(
+/// Mean held-out quality of the current model on the frames at `positions`, read again from
+/// the source one at a time (so the memory it takes does not grow with the stream); views that
+/// no longer read are left out. Returns the mean (NaN without views) and the views scored.
+pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
     trainer: &mut Trainer<'_>,
     executor: &E,
-    views: &Dataset,
+    source: &S,
+    positions: &[u64],
     fit_steps: u32,
-) -> Result<ViewMetrics> {
-    let indices: Vec<usize> = (0..views.frames.len()).collect();
-    let scores = train::evaluate(trainer, executor, views, &indices, fit_steps, None)?;
-    Ok(report::mean_metrics(&train::view_metrics(views, &scores)?))
+) -> Result<(ViewMetrics, usize)> {
+    let info = source.info();
+    let mut per_view = Vec::with_capacity(positions.len());
+    for &position in positions {
+        let Ok(frame) = source.reload(position) else {
+            continue;
+        };
+        let view = Dataset {
+            source: info.name.clone().into(),
+            frames: vec![frame],
+            scene_min: info.scene_min,
+            scene_max: info.scene_max,
+            background: info.background,
+        };
+        let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, None)?;
+        per_view.extend(train::view_metrics(&view, &scores)?);
+    }
+    Ok((report::mean_metrics(&per_view), per_view.len()))
 }
 
 fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
@@ -390,12 +391,17 @@ fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
     state: &StreamState,
     seconds_per_frame: f64,
 ) -> Result<AnytimePoint> {
-    let views = held_out_views(source, state);
-    let metrics = held_out_quality(trainer, executor, &views, state.settings.fit_steps)?;
+    let (metrics, views) = held_out_quality(
+        trainer,
+        executor,
+        source,
+        &state.held_out,
+        state.settings.fit_steps,
+    )?;
     Ok(AnytimePoint {
         frames_seen: state.position,
         frames_held: trainer.frames().len(),
-        held_out_views: views.frames.len(),
+        held_out_views: views,
         steps: trainer.state().step,
         psnr: metrics.psnr_full,
         ssim: metrics.ssim_full,
@@ -521,6 +527,12 @@ pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
             .map_err(|e| core_error(&source.info().name, e))?;
         on_step(step);
     }
-    let views = held_out_views(source, state);
-    held_out_quality(&mut trainer, executor, &views, state.settings.fit_steps)
+    let (metrics, _) = held_out_quality(
+        &mut trainer,
+        executor,
+        source,
+        &state.held_out,
+        state.settings.fit_steps,
+    )?;
+    Ok(metrics)
 }

@@ -1,5 +1,5 @@
 //! Where streamed frames come from, one at a time and in arrival order: a dataset folder
-//! (optionally paced at a fixed rate), a folder being watched while files appear in it, or the
+//! (SPEED+ / SHIRT or NeRF-synthetic, optionally paced at a fixed rate), a folder being watched while files appear in it, or the
 //! simulator rendering a preset frame by frame. No source holds more than the frame it hands
 //! out; a held-out frame is read (or rendered) again when it is scored.
 //!
@@ -14,6 +14,7 @@
 
 use crate::dataset::Frame;
 use crate::error::{HostError, Result};
+use crate::nerf_formats::{self, OutputSize, SyntheticReader, SyntheticSplit};
 use crate::sim::{FrameSimulator, Scene};
 use crate::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
 use std::path::{Path, PathBuf};
@@ -53,31 +54,90 @@ pub trait FrameSource {
     fn reload(&self, position: u64) -> Result<Frame>;
 }
 
-/// A SPEED+ / SHIRT / simulator dataset folder, read frame by frame in label order, optionally
-/// paced at `rate` frames per second (pacing never changes what is learned).
+/// A dataset folder read frame by frame in file order, optionally paced at `rate` frames per
+/// second (pacing never changes what is learned): SPEED+ / SHIRT / simulator output in label
+/// order, or a NeRF-synthetic scene's training split in `transforms_train.json` order
+/// (composited on white, as NeRF-synthetic results are).
 pub struct DatasetSource {
-    reader: SpeedPlusReader,
+    reader: DatasetReader,
     info: SourceInfo,
     next: u64,
     rate: Option<f64>,
     paced_since: Option<(Instant, u64)>,
 }
 
+enum DatasetReader {
+    SpeedPlus(Box<SpeedPlusReader>),
+    Synthetic(SyntheticReader),
+}
+
+impl DatasetReader {
+    fn len(&self) -> usize {
+        match self {
+            DatasetReader::SpeedPlus(reader) => reader.len(),
+            DatasetReader::Synthetic(reader) => reader.len(),
+        }
+    }
+
+    fn frame(&self, index: usize) -> Result<Frame> {
+        match self {
+            DatasetReader::SpeedPlus(reader) => reader.frame(index),
+            DatasetReader::Synthetic(reader) => reader.frame(index),
+        }
+    }
+}
+
+/// NeRF-synthetic images are composited on white.
+const SYNTHETIC_BACKGROUND: [f32; 3] = [1.0; 3];
+
 impl DatasetSource {
+    /// Open `path` (a folder or a label / transforms file); `width` resizes SPEED+ frames to
+    /// that width and NeRF-synthetic frames to that longer side.
     pub fn open(path: &Path, width: Option<u32>, rate: Option<f64>) -> Result<DatasetSource> {
-        let options = LoadOptions {
-            width,
-            domain: None,
+        let name = path.display().to_string();
+        let transforms = if path.is_dir() {
+            Some(path.join(SyntheticSplit::Train.file_name())).filter(|p| p.is_file())
+        } else {
+            Some(path.to_path_buf()).filter(|p| {
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with("transforms_"))
+            })
         };
-        let reader = SpeedPlusReader::open(path, &options)?;
-        let (scene_min, scene_max) = reader.scene_box();
-        let info = SourceInfo {
-            name: path.display().to_string(),
-            scene_min,
-            scene_max,
-            background: [0.0; 3],
-            max_pixels: reader.decoder.output_camera().pixel_count(),
-            frames: Some(reader.len() as u64),
+        let (reader, info) = match transforms {
+            Some(json) => {
+                let options = nerf_formats::LoadOptions {
+                    size: width.map_or(OutputSize::Original, OutputSize::MaxSide),
+                    background: SYNTHETIC_BACKGROUND,
+                };
+                let reader = SyntheticReader::open(&json, &options)?;
+                let info = SourceInfo {
+                    name,
+                    scene_min: nerf_formats::NERF_SYNTHETIC_SCENE_MIN,
+                    scene_max: nerf_formats::NERF_SYNTHETIC_SCENE_MAX,
+                    background: SYNTHETIC_BACKGROUND,
+                    max_pixels: reader.output_pixels(),
+                    frames: Some(reader.len() as u64),
+                };
+                (DatasetReader::Synthetic(reader), info)
+            }
+            None => {
+                let options = LoadOptions {
+                    width,
+                    domain: None,
+                };
+                let reader = SpeedPlusReader::open(path, &options)?;
+                let (scene_min, scene_max) = reader.scene_box();
+                let info = SourceInfo {
+                    name,
+                    scene_min,
+                    scene_max,
+                    background: [0.0; 3],
+                    max_pixels: reader.decoder.output_camera().pixel_count(),
+                    frames: Some(reader.len() as u64),
+                };
+                (DatasetReader::SpeedPlus(Box::new(reader)), info)
+            }
         };
         Ok(DatasetSource {
             reader,
