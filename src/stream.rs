@@ -102,6 +102,7 @@ pub struct StreamArgs {
 pub enum Policy {
     Fifo,
     Novelty,
+    Coverage,
 }
 
 impl From<Policy> for Replacement {
@@ -109,6 +110,7 @@ impl From<Policy> for Replacement {
         match policy {
             Policy::Fifo => Replacement::Fifo,
             Policy::Novelty => Replacement::Novelty,
+            Policy::Coverage => Replacement::Coverage,
         }
     }
 }

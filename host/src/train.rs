@@ -68,6 +68,7 @@ pub enum TexelUpdateDef {
 pub enum ReplacementDef {
     Fifo,
     Novelty,
+    Coverage,
 }
 
 #[derive(Serialize, Deserialize)]

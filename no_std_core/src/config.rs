@@ -37,6 +37,8 @@ pub enum Replacement {
     /// `capacity / seen` scaled by how far it lies from the held frames (view direction and
     /// brightness), and replaces the most redundant held frame (see `stream.rs`).
     Novelty,
+    /// Every frame is admitted and replaces the most redundant held frame.
+    Coverage,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]

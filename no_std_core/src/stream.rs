@@ -14,6 +14,9 @@
 //!   gets plain reservoir odds, a near-duplicate almost none, a new viewpoint or lighting more.
 //!   An admitted frame replaces the most redundant held frame: the one whose nearest neighbour
 //!   (among the other held frames and the new one) is closest, the oldest on ties.
+//! - [`Replacement::Coverage`]: every frame is admitted (so every frame is trained on for a
+//!   while, as with FIFO) and replaces the most redundant held frame, as above: distinct views
+//!   and lighting stay, near-duplicates cycle.
 //!
 //! The admission draw comes from the core's seeded RNG (its own stream), keyed by the arrival
 //! number, so the held set depends only on the config, the seed and the arrival order.
@@ -98,6 +101,7 @@ pub fn choose_slot(
     match config.replacement {
         Replacement::Fifo => oldest(frames),
         Replacement::Novelty => novelty_reservoir(config, frames, incoming, arrival),
+        Replacement::Coverage => redundancy(config, frames, incoming).victim,
     }
 }
 
@@ -118,12 +122,18 @@ fn oldest(frames: &FrameStore<'_>) -> Option<usize> {
     best.map(|(_, slot)| slot)
 }
 
-fn novelty_reservoir(
-    config: &Config,
-    frames: &FrameStore<'_>,
-    incoming: &Descriptor,
-    arrival: u32,
-) -> Option<usize> {
+/// What the held frames look like from an incoming one.
+struct Redundancy {
+    /// The held frame whose nearest neighbour (among the other held frames and the incoming
+    /// one) is closest, the oldest on ties.
+    victim: Option<usize>,
+    /// Distance from the incoming frame to the nearest held frame.
+    novelty: f32,
+    /// Mean nearest-neighbour distance among the held frames.
+    spacing: f32,
+}
+
+fn redundancy(config: &Config, frames: &FrameStore<'_>, incoming: &Descriptor) -> Redundancy {
     let held = frames.len();
     let descriptor = |i: usize| {
         let slot = frames.occupied_slot(i)?;
@@ -158,7 +168,24 @@ fn novelty_reservoir(
             victim = Some((nearest, meta.arrival, slot));
         }
     }
-    let spacing = spacing_sum / spaced.max(1) as f32;
+    Redundancy {
+        victim: victim.map(|(_, _, slot)| slot),
+        novelty,
+        spacing: spacing_sum / spaced.max(1) as f32,
+    }
+}
+
+fn novelty_reservoir(
+    config: &Config,
+    frames: &FrameStore<'_>,
+    incoming: &Descriptor,
+    arrival: u32,
+) -> Option<usize> {
+    let Redundancy {
+        victim,
+        novelty,
+        spacing,
+    } = redundancy(config, frames, incoming);
     let ratio = if spacing > 0.0 {
         novelty / spacing
     } else if novelty > 0.0 {
@@ -169,11 +196,7 @@ fn novelty_reservoir(
     let odds = frames.capacity() as f32 / (arrival as f32 + 1.0) * ratio;
     let draw = rng::unit_f32(rng::hash(config.seed, stream::ADMIT, arrival as u64, 0));
     // A NaN descriptor compares false here and keeps the held frames.
-    if draw < odds {
-        victim.map(|(_, _, slot)| slot)
-    } else {
-        None
-    }
+    if draw < odds { victim } else { None }
 }
 
 #[cfg(test)]
@@ -295,6 +318,15 @@ mod tests {
             assert!(held.contains(&distinct), "lost view {distinct}: {held:?}");
         }
         assert!(held.iter().all(|&a| a != u32::MAX), "the store is full");
+        // Coverage admits every frame and keeps the distinct ones too.
+        let (coverage, chosen) = stream_views(Replacement::Coverage, &azimuths);
+        for distinct in 0..3 {
+            assert!(
+                coverage.contains(&distinct),
+                "lost view {distinct}: {coverage:?}"
+            );
+        }
+        assert!(coverage.contains(&42) && chosen[..43].iter().all(Option::is_some));
         // FIFO keeps only the last four near-duplicates.
         let (fifo, _) = stream_views(Replacement::Fifo, &azimuths);
         assert!(fifo.iter().all(|&a| a >= 39), "{fifo:?}");
