@@ -40,7 +40,7 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 40)]
     pub store: u16,
     /// Replacement policy of a full store.
-    #[arg(long, value_enum, default_value_t = Policy::Novelty)]
+    #[arg(long, value_enum, default_value_t = Policy::Fifo)]
     pub policy: Policy,
     /// Training steps after each usable frame.
     #[arg(long, default_value_t = 17)]

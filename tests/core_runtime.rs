@@ -390,7 +390,11 @@ fn a_training_step_allocates_nothing() {
 
 #[test]
 fn streaming_frames_through_a_full_store_allocates_nothing() {
-    for replacement in [Replacement::Fifo, Replacement::Novelty, Replacement::Coverage] {
+    for replacement in [
+        Replacement::Fifo,
+        Replacement::Novelty,
+        Replacement::Coverage,
+    ] {
         let mut config = tiny_config();
         config.max_frames = 4;
         config.replacement = replacement;

@@ -142,7 +142,7 @@ impl Config {
         max_samples_per_ray: 256,
         min_transmittance: 1e-4,
         max_frames: 128,
-        replacement: Replacement::Novelty,
+        replacement: Replacement::Fifo,
         max_pixels_per_frame: 128 * 128,
         rays_per_batch: 4096,
         chunks: 4,
