@@ -1,7 +1,7 @@
 //! Streaming end to end: kill-and-resume equals an uninterrupted run bit for bit (through the
-//! host API with a deterministic stop, and through the binary with a real SIGTERM), a watched
-//! folder ingests frames written while it trains, in order, and every kind of bad frame is
-//! reported once and skipped while the stream goes on.
+//! host API with a deterministic stop, and through the binary with a real SIGTERM or SIGKILL),
+//! a watched folder ingests frames written while it trains, in order, and every kind of bad
+//! frame is reported once and skipped while the stream goes on.
 
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::checkpoint;
@@ -205,7 +205,7 @@ fn output_text(out: &std::process::Output) -> String {
 }
 
 #[test]
-fn sigterm_stops_the_binary_with_a_checkpoint_and_resume_matches_an_uninterrupted_run() {
+fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
     if !have_shared_data() {
         return;
     }
@@ -245,36 +245,56 @@ fn sigterm_stops_the_binary_with_a_checkpoint_and_resume_matches_an_uninterrupte
     let out = run(&[], &whole).output().unwrap();
     assert!(out.status.success(), "{}", output_text(&out));
 
-    let parts = dir.join("parts");
-    let child = run(&[], &parts)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    // Terminate once the first checkpoint is there: the run is under way.
-    while !parts.join("checkpoint.onrf").is_file() {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let killed = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
-    let out = child.wait_with_output().unwrap();
-    let text = output_text(&out);
-    assert!(out.status.success(), "{text}");
-    // (If the run had already finished, there would be nothing to resume: the test is only
-    // meaningful when SIGTERM arrived mid-stream, which 40 frames make certain.)
-    assert!(text.contains("stopped after"), "{text}");
-    let out = run(&["--resume"], &parts).output().unwrap();
-    let text = output_text(&out);
-    assert!(out.status.success() && text.contains("resuming"), "{text}");
-    assert!(
-        trainer_sections(&parts.join("checkpoint.onrf"))
-            == trainer_sections(&whole.join("checkpoint.onrf")),
-        "the resumed binary's final state differs from the uninterrupted one"
-    );
-    assert!(parts.join("anytime.csv").is_file() && parts.join("anytime.png").is_file());
+    // Start a run and send it `signal` once its first checkpoint is there (the run is under
+    // way), after `delay`; returns what it printed and whether it exited cleanly.
+    let interrupt = |signal: &str, delay: Duration, out: &Path| {
+        let child = run(&[], out)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        while !out.join("checkpoint.onrf").is_file() {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        std::thread::sleep(delay);
+        let killed = Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let out = child.wait_with_output().unwrap();
+        (out.status.success(), output_text(&out))
+    };
+    let resume_and_compare = |out: &Path| {
+        let resumed = run(&["--resume"], out).output().unwrap();
+        let text = output_text(&resumed);
+        assert!(
+            resumed.status.success() && text.contains("resuming"),
+            "{text}"
+        );
+        assert!(
+            trainer_sections(&out.join("checkpoint.onrf"))
+                == trainer_sections(&whole.join("checkpoint.onrf")),
+            "{}: the resumed binary's final state differs from the uninterrupted one",
+            out.display()
+        );
+    };
+
+    // SIGTERM: the run finishes its frame, checkpoints and exits cleanly. (40 frames make sure
+    // the signal arrives mid-stream.)
+    let terminated = dir.join("terminated");
+    let (clean, text) = interrupt("-TERM", Duration::ZERO, &terminated);
+    assert!(clean && text.contains("stopped after"), "{text}");
+    resume_and_compare(&terminated);
+    assert!(terminated.join("anytime.csv").is_file() && terminated.join("anytime.png").is_file());
+
+    // SIGKILL, possibly in the middle of a checkpoint write: the last complete checkpoint is
+    // still there and loads (checkpoints are written to a temporary file, then renamed).
+    let killed = dir.join("killed");
+    let (clean, text) = interrupt("-KILL", Duration::from_millis(150), &killed);
+    assert!(!clean, "{text}");
+    stream::load(&killed.join("checkpoint.onrf")).unwrap();
+    resume_and_compare(&killed);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
