@@ -207,7 +207,8 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
     control: &Control<'_>,
     on_event: &mut dyn FnMut(&Event<'_>),
 ) -> Result<Outcome> {
-    let mut window = (Instant::now(), 0u64, 0.0f64);
+    // Arrivals and their ingest + training seconds since the last anytime point.
+    let (mut window_frames, mut window_seconds) = (0u64, 0.0f64);
     loop {
         if control.stop.load(Ordering::SeqCst)
             || control.stop_after.is_some_and(|n| state.position >= n)
@@ -261,18 +262,18 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
                 });
             }
         }
-        window.1 += 1;
-        window.2 += started.elapsed().as_secs_f64();
+        window_frames += 1;
+        window_seconds += started.elapsed().as_secs_f64();
         if was_usable
             && state
                 .usable
                 .is_multiple_of(state.settings.eval_every.max(1))
         {
-            let point =
-                anytime_point(trainer, executor, source, state, window.2 / window.1 as f64)?;
+            let per_frame = window_seconds / window_frames as f64;
+            let point = anytime_point(trainer, executor, source, state, per_frame)?;
             on_event(&Event::Anytime(&point));
             state.curve.push(point);
-            window = (Instant::now(), 0, 0.0);
+            (window_frames, window_seconds) = (0, 0.0);
         }
         if state
             .position
@@ -288,7 +289,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         .is_none_or(|p| p.frames_seen < state.position)
         && state.usable > 0
     {
-        let per_frame = window.2 / window.1.max(1) as f64;
+        let per_frame = window_seconds / window_frames.max(1) as f64;
         let point = anytime_point(trainer, executor, source, state, per_frame)?;
         on_event(&Event::Anytime(&point));
         state.curve.push(point);
