@@ -34,6 +34,10 @@ pub struct AblateArgs {
     /// Run the pose-noise sweep on the `synthetic` preset instead.
     #[arg(long)]
     pub pose_noise: bool,
+    /// Rotation-noise levels of the sweep, in degrees (each with 10 mm of translation noise
+    /// per degree, as in the paper); default: the paper's five.
+    #[arg(long, value_delimiter = ',', default_values_t = NOISE_LEVELS_DEG)]
+    pub levels: Vec<f32>,
     /// Every N-th view is held out.
     #[arg(long, default_value_t = 8)]
     pub holdout: usize,
@@ -48,14 +52,10 @@ pub struct AblateArgs {
 
 type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 
-/// The paper's sweep: rotation noise (degrees) and translation noise (metres) on the labels.
-const NOISE_LEVELS: [(f32, f32); 5] = [
-    (0.0, 0.0),
-    (0.2, 0.002),
-    (0.4, 0.004),
-    (0.8, 0.008),
-    (1.6, 0.016),
-];
+/// The paper's sweep: rotation noise on the labels, in degrees.
+const NOISE_LEVELS_DEG: [f32; 5] = [0.0, 0.2, 0.4, 0.8, 1.6];
+/// Translation noise per degree of rotation noise (the paper's pairs: 0.2 deg with 2 mm, ...).
+const TRANSLATION_M_PER_DEG: f32 = 0.01;
 
 /// Simulate `scene` (with optional label noise) into `out` and load it with its exact poses.
 pub fn simulated(
@@ -104,7 +104,7 @@ pub fn run(args: &AblateArgs) -> Fallible<()> {
 fn base_config(args: &AblateArgs) -> Fallible<Config> {
     let mut config = match &args.config {
         Some(path) => orbit_nerf_host::train::read_config(path)?,
-        None => Config::DEFAULT,
+        None => Config::SPACECRAFT,
     };
     config.steps = args.steps;
     config.warmup_steps = config.warmup_steps.min(args.steps);
@@ -212,7 +212,13 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
     let mut rows = Vec::new();
     let (mut ssim_ours, mut ssim_pose, mut rot_labels, mut rot_pose) =
         (vec![], vec![], vec![], vec![]);
-    for (i, &(rotation_deg, translation_m)) in NOISE_LEVELS.iter().enumerate() {
+    for (i, &rotation_deg) in args.levels.iter().enumerate() {
+        if !(rotation_deg.is_finite() && rotation_deg >= 0.0) {
+            return Err(
+                format!("--levels: {rotation_deg} is not a rotation noise in degrees").into(),
+            );
+        }
+        let translation_m = rotation_deg * TRANSLATION_M_PER_DEG;
         let noise = LabelNoise {
             rotation_deg,
             translation_m,

@@ -483,7 +483,7 @@ fn run_demo(args: &DemoArgs) -> CliResult {
         &args.out.join("data"),
     )?;
     let (train_idx, test_idx) = dataset::split_every(dataset.frames.len(), 8);
-    let mut config = Config::DEFAULT;
+    let mut config = Config::SPACECRAFT;
     config.steps = args.steps.unwrap_or(DEMO_STEPS);
     config.warmup_steps = config.warmup_steps.min(config.steps);
     let bar = ProgressBar::new(config.steps as u64).with_style(

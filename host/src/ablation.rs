@@ -52,9 +52,10 @@ pub struct VariantResult {
     pub pose_after: Option<PoseErrors>,
 }
 
-/// The pose a frame's label becomes with its learned correction: rays start at
-/// `centre + dt` and their directions are rotated by the correction in the world frame.
-pub fn corrected_pose(label: &Pose, correction: &PoseCorrection) -> Pose {
+/// The pose a frame's label becomes with its learned correction: rays start at the corrected
+/// origin (`centre + dt`, turned about `pivot` if there is one) and their directions are
+/// rotated by the correction in the world frame.
+pub fn corrected_pose(label: &Pose, correction: &PoseCorrection, pivot: Option<Vec3>) -> Pose {
     let rotation = Mat3::from_cols(
         correction.rotate(Vec3::X),
         correction.rotate(Vec3::Y),
@@ -62,7 +63,7 @@ pub fn corrected_pose(label: &Pose, correction: &PoseCorrection) -> Pose {
     );
     Pose {
         rotation: rotation * label.rotation,
-        center: label.center + correction.dt,
+        center: correction.origin(label.center, pivot),
     }
 }
 
@@ -129,7 +130,7 @@ pub fn run_variant(
                     } else {
                         PoseCorrection::default()
                     };
-                    corrected_pose(label, &correction)
+                    corrected_pose(label, &correction, config.pose_pivot_point())
                 })
                 .collect();
             (
@@ -163,14 +164,25 @@ mod tests {
             dt: Vec3::new(0.1, 0.0, -0.2),
             v: Vec3::new(0.0, 0.05, 0.0),
         };
-        let pose = corrected_pose(&label, &correction);
+        let pose = corrected_pose(&label, &correction, None);
         let d_cam = Vec3::new(0.2, -0.1, 1.0);
         // The corrected pose sends a camera ray where the trainer sends it.
         let expected = correction.rotate(label.rotation * d_cam);
         assert!((pose.rotation * d_cam - expected).length() < 1e-6);
         assert!((pose.center - Vec3::new(1.1, 2.0, 2.8)).length() < 1e-6);
+        // About a pivot the rotation also turns the centre: it keeps its distance to the
+        // pivot, and a pure rotation moves it along the sphere about the pivot.
+        let pivot = Vec3::new(0.5, 0.0, 0.0);
+        let turn = PoseCorrection {
+            dt: Vec3::ZERO,
+            v: Vec3::new(0.0, 0.0, 0.1),
+        };
+        let pose = corrected_pose(&label, &turn, Some(pivot));
+        assert!((pose.center.distance(pivot) - label.center.distance(pivot)).abs() < 1e-5);
+        assert!((pose.center - (pivot + turn.rotate(label.center - pivot))).length() < 1e-6);
+        assert!((pose.rotation * d_cam - turn.rotate(label.rotation * d_cam)).length() < 1e-6);
         // A zero correction leaves the label as it is.
-        let same = corrected_pose(&label, &PoseCorrection::default());
+        let same = corrected_pose(&label, &PoseCorrection::default(), None);
         assert!((same.rotation - label.rotation).abs_diff_eq(Mat3::ZERO, 1e-7));
     }
 }

@@ -5,7 +5,7 @@ use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::report::ViewMetrics;
-use orbit_nerf_core::{Config, Executor, Replacement, TexelUpdate, Trainer};
+use orbit_nerf_core::{Config, Executor, PosePivot, Replacement, TexelUpdate, Trainer};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -40,6 +40,7 @@ pub struct ConfigDef {
     pub replacement: Replacement,
     pub max_pixels_per_frame: u32,
     pub rays_per_batch: u32,
+    pub foreground_fraction: f32,
     pub chunks: u8,
     pub samples_per_chunk: u32,
     pub steps: u32,
@@ -53,7 +54,17 @@ pub struct ConfigDef {
     pub texel_update: TexelUpdate,
     pub pose_lr_factor: f32,
     pub pose_correction: bool,
+    #[serde(with = "PosePivotDef")]
+    pub pose_pivot: PosePivot,
+    pub pose_warmup_steps: u32,
     pub seed: u64,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "PosePivot", rename_all = "snake_case")]
+pub enum PosePivotDef {
+    Camera,
+    TargetOrigin,
 }
 
 #[derive(Serialize, Deserialize)]

@@ -137,14 +137,23 @@ impl PoseCorrection {
         }
     }
 
-    /// Rotate a direction: `d + 2w (v × d) + 2 v × (v × d)`.
+    /// The corrected ray origin of a camera at `center`: `center + dt`, and with a pivot `p`
+    /// also turned about it, `p + R (center - p) + dt` (see [`crate::PosePivot`]).
+    pub fn origin(&self, center: Vec3, pivot: Option<Vec3>) -> Vec3 {
+        match pivot {
+            Some(p) => p + self.rotate(center - p) + self.dt,
+            None => center + self.dt,
+        }
+    }
+
+    /// Rotate a vector: `d + 2w (v × d) + 2 v × (v × d)`.
     pub fn rotate(&self, d: Vec3) -> Vec3 {
         let (v, w) = self.quaternion();
         let vxd = v.cross(d);
         d + vxd * (2.0 * w) + v.cross(vxd) * 2.0
     }
 
-    /// d loss / d v given d loss / d (rotated direction) `g`, for the direction `d` that was
+    /// d loss / d v given d loss / d (rotated vector) `g`, for the vector `d` that was
     /// rotated.
     pub fn rotation_vjp(&self, d: Vec3, g: Vec3) -> Vec3 {
         let (v, w) = self.quaternion();

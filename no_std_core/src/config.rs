@@ -41,6 +41,26 @@ pub enum Replacement {
     Coverage,
 }
 
+/// The point a pose correction's rotation turns the camera about. Either way a corrected frame
+/// shoots its rays from origin + dt with directions rotated by dq in the world frame; the
+/// pivot only decides which coordinates the optimiser moves (the same corrected poses are
+/// reachable), so it changes the conditioning, not the model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum PosePivot {
+    /// The learned translation is dt itself: turning the directions leaves the camera centre
+    /// where it is.
+    Camera,
+    /// The rotation turns the camera about the world origin (the target's origin, which the
+    /// labels' relative position points to), and the learned translation u moves it on top:
+    /// dt = u + (R - I) c. This is the paper's update of a relative-pose label,
+    /// q~ = dq q^ and t~ = t^ + dt (with dt in the world frame). An attitude error at a known
+    /// target position, which moves the camera on a sphere about the target, is then one
+    /// coordinate (the rotation) instead of a balance between the rotation and dt, each of
+    /// which alone shifts the image by pixels.
+    TargetOrigin,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Config {
@@ -94,6 +114,10 @@ pub struct Config {
     pub max_pixels_per_frame: u32,
     /// Rays sampled per training step.
     pub rays_per_batch: u32,
+    /// Fraction of the rays drawn inside their frame's foreground box (the mask's box, or the
+    /// box of pixels brighter than the sky); the rest cover the whole image, so empty space
+    /// stays empty. 0 samples every pixel alike.
+    pub foreground_fraction: f32,
     /// The batch is cut into this many equal chunks, each with its own buffers; the host
     /// runs chunks on threads, and results never depend on which thread ran which chunk.
     pub chunks: u8,
@@ -115,10 +139,23 @@ pub struct Config {
     pub pose_lr_factor: f32,
     /// Learn a pose correction per frame.
     pub pose_correction: bool,
+    /// What the pose correction's rotation turns the camera about.
+    pub pose_pivot: PosePivot,
+    /// Pose corrections stay at zero for this many steps, until the field has formed (early
+    /// gradients of a blurry field push poses anywhere).
+    pub pose_warmup_steps: u32,
     pub seed: u64,
 }
 
 impl Config {
+    /// The point pose corrections turn cameras about, if not their own centres.
+    pub fn pose_pivot_point(&self) -> Option<glam::Vec3> {
+        match self.pose_pivot {
+            PosePivot::Camera => None,
+            PosePivot::TargetOrigin => Some(glam::Vec3::ZERO),
+        }
+    }
+
     /// A CPU-sized K-Planes model for a NeRF-synthetic scene at about 100 px.
     pub const DEFAULT: Config = Config {
         scales: 3,
@@ -145,6 +182,7 @@ impl Config {
         replacement: Replacement::Fifo,
         max_pixels_per_frame: 128 * 128,
         rays_per_batch: 4096,
+        foreground_fraction: 0.0,
         chunks: 4,
         samples_per_chunk: 16 * 1024,
         steps: 3000,
@@ -157,7 +195,20 @@ impl Config {
         texel_update: TexelUpdate::MasterCopy,
         pose_lr_factor: 0.01,
         pose_correction: false,
+        pose_pivot: PosePivot::Camera,
+        pose_warmup_steps: 0,
         seed: 0,
+    };
+
+    /// The default for a spacecraft against the black sky (the simulator's presets, SPEED+,
+    /// SHIRT): three quarters of the rays on the target's box, pose corrections that turn
+    /// cameras about the target and start once the field has formed (300 steps). Measured
+    /// against DEFAULT in the README.
+    pub const SPACECRAFT: Config = Config {
+        foreground_fraction: 0.75,
+        pose_pivot: PosePivot::TargetOrigin,
+        pose_warmup_steps: 300,
+        ..Config::DEFAULT
     };
 
     pub const fn density_inputs(&self) -> usize {
@@ -282,6 +333,11 @@ impl Config {
             || self.rays_per_batch > (1 << 24)
         {
             return bad("rays_per_batch");
+        }
+        if !(self.foreground_fraction.is_finite()
+            && (0.0..=1.0).contains(&self.foreground_fraction))
+        {
+            return bad("foreground_fraction");
         }
         if (self.samples_per_chunk as usize) < LANES || self.samples_per_chunk > (1 << 26) {
             return bad("samples_per_chunk");

@@ -25,6 +25,10 @@ pub struct FrameMeta {
     pub brightness: f32,
     /// Arrival number of the frame in a stream (0 for frames put in place directly).
     pub arrival: u32,
+    /// The foreground box, pixel columns `[x0, x1)` and rows `[y0, y1)`: the mask's box when
+    /// there is a mask, else the box of pixels brighter than [`FOREGROUND_LEVEL`], widened by
+    /// [`FOREGROUND_MARGIN`] pixels; the whole image when nothing stands out.
+    pub foreground: [u32; 4],
 }
 
 impl FrameMeta {
@@ -38,6 +42,17 @@ impl FrameMeta {
             cy: self.cy,
         }
     }
+    /// The foreground box, or the whole image if the stored one is empty or does not fit
+    /// (a restored checkpoint is not trusted).
+    pub fn foreground_box(&self) -> [u32; 4] {
+        match self.foreground {
+            [x0, x1, y0, y1] if x0 < x1 && x1 <= self.width && y0 < y1 && y1 <= self.height => {
+                self.foreground
+            }
+            _ => [0, self.width, 0, self.height],
+        }
+    }
+
     pub fn pose(&self) -> Pose {
         Pose {
             rotation: Mat3::from_cols_array(&self.rotation),
@@ -55,6 +70,38 @@ pub struct FrameStore<'a> {
     pub(crate) occupied: &'a mut [u16],
     pub(crate) len: usize,
     pub(crate) max_pixels: usize,
+}
+
+/// A pixel whose brightest channel exceeds this (of 255) counts as foreground when a frame
+/// has no mask: the target against the black sky, above the sensor's dark noise.
+pub const FOREGROUND_LEVEL: u8 = 40;
+/// The foreground box is widened by this many pixels on every side, so the silhouette's
+/// edges (and the sky just outside them) are sampled too.
+pub const FOREGROUND_MARGIN: u32 = 4;
+
+/// The box `[x0, x1, y0, y1)` of the pixels for which `is_foreground(index)` holds, widened by
+/// the margin and clipped to the image; the whole image if there are none.
+fn foreground_box(width: u32, height: u32, is_foreground: impl Fn(usize) -> bool) -> [u32; 4] {
+    let (mut x0, mut x1, mut y0, mut y1) = (width, 0, height, 0);
+    for y in 0..height {
+        for x in 0..width {
+            if is_foreground((y * width + x) as usize) {
+                x0 = x0.min(x);
+                x1 = x1.max(x + 1);
+                y0 = y0.min(y);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    if x0 >= x1 {
+        return [0, width, 0, height];
+    }
+    [
+        x0.saturating_sub(FOREGROUND_MARGIN),
+        (x1 + FOREGROUND_MARGIN).min(width),
+        y0.saturating_sub(FOREGROUND_MARGIN),
+        (y1 + FOREGROUND_MARGIN).min(height),
+    ]
 }
 
 /// Largest deviation of R^T R from the identity accepted for a pose label.
@@ -157,6 +204,15 @@ impl<'a> FrameStore<'a> {
         if let Some(mask) = mask {
             self.masks[base..base + n].copy_from_slice(mask);
         }
+        let (w, h) = (camera.width as u32, camera.height as u32);
+        let foreground = match mask {
+            Some(mask) => foreground_box(w, h, |i| mask[i] != 0),
+            None => foreground_box(w, h, |i| {
+                pixels[i * 3..i * 3 + 3]
+                    .iter()
+                    .any(|&v| v > FOREGROUND_LEVEL)
+            }),
+        };
         self.meta[slot] = FrameMeta {
             width: camera.width as u32,
             height: camera.height as u32,
@@ -170,6 +226,7 @@ impl<'a> FrameStore<'a> {
             occupied: 1,
             brightness: mean_brightness(pixels),
             arrival: 0,
+            foreground,
         };
         self.rebuild_occupied();
         Ok(())
@@ -206,4 +263,31 @@ impl<'a> FrameStore<'a> {
 pub fn mean_brightness(pixels: &[u8]) -> f32 {
     let sum: u64 = pixels.iter().map(|&v| v as u64).sum();
     sum as f32 / (255.0 * pixels.len().max(1) as f32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn foreground_box_covers_the_bright_pixels_with_a_margin() {
+        let (w, h) = (32u32, 24u32);
+        let lit = |i: usize| {
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            (10..14).contains(&x) && (6..9).contains(&y)
+        };
+        let m = FOREGROUND_MARGIN;
+        assert_eq!(foreground_box(w, h, lit), [10 - m, 14 + m, 6 - m, 9 + m]);
+        // Clipped at the image border, and the whole image when nothing is lit.
+        assert_eq!(foreground_box(w, h, |i| i == 0), [0, 1 + m, 0, 1 + m]);
+        assert_eq!(foreground_box(w, h, |_| false), [0, w, 0, h]);
+        // A stored box that does not fit its frame is not used.
+        let meta = FrameMeta {
+            width: w,
+            height: h,
+            foreground: [5, 40, 0, 3],
+            ..FrameMeta::default()
+        };
+        assert_eq!(meta.foreground_box(), [0, w, 0, h]);
+    }
 }

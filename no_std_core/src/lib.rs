@@ -19,7 +19,7 @@ pub mod stream;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
-pub use config::{Config, MemoryPlan, Replacement, TexelUpdate};
+pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
 pub use glam;
 pub use stream::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};

@@ -90,6 +90,8 @@ struct Shared<'s> {
     occupancy: OccupancyView<'s>,
     rays: &'s [f32],
     ray_frames: &'s [u32],
+    /// The frame slots' metadata (label poses), for the pose-correction gradients.
+    frame_meta: &'s [FrameMeta],
     embedding: Embedding<'s>,
     step: u32,
     /// Offset the sample positions along each ray by a seeded fraction of a step.
@@ -537,6 +539,7 @@ impl<'a> Trainer<'a> {
             },
             rays: self.rays,
             ray_frames: self.ray_frames,
+            frame_meta: self.frames.meta,
             embedding,
             step,
             jitter,
@@ -632,10 +635,22 @@ impl<'a> Trainer<'a> {
                 .unwrap_or(0);
             let meta = self.frames.meta[slot];
             let camera = meta.camera();
-            let pixel = rng::below(
-                rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 1 << 40),
-                camera.pixel_count() as u32,
-            );
+            let bits = rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 1 << 40);
+            let in_foreground = c.foreground_fraction > 0.0
+                && rng::unit_f32(rng::hash(
+                    c.seed,
+                    stream::RAY_PICK,
+                    step,
+                    (r as u64) | 2 << 40,
+                )) < c.foreground_fraction;
+            let pixel = if in_foreground {
+                let [x0, x1, y0, y1] = meta.foreground_box();
+                let i = x0 + rng::below(bits, x1 - x0);
+                let j = y0 + rng::below(bits.rotate_right(32), y1 - y0);
+                j * meta.width + i
+            } else {
+                rng::below(bits, camera.pixel_count() as u32)
+            };
             let (i, j) = (pixel % meta.width, pixel / meta.width);
             let (o, d) = Self::pixel_ray(&camera, &meta.pose(), i, j);
             let n = c.frame_params();
@@ -649,7 +664,8 @@ impl<'a> Trainer<'a> {
             let px =
                 &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
             let ray = &mut self.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
-            ray[..3].copy_from_slice(&(o + correction.dt).to_array());
+            let origin = correction.origin(o, c.pose_pivot_point());
+            ray[..3].copy_from_slice(&origin.to_array());
             ray[3..6].copy_from_slice(&correction.rotate(d).to_array());
             for ch in 0..3 {
                 ray[6 + ch] = px[ch] as f32 * (1.0 / 255.0);
@@ -782,7 +798,7 @@ impl<'a> Trainer<'a> {
                     &mut self.frame_m[emb.clone()],
                     &mut self.frame_v[emb],
                 );
-                if c.pose_correction {
+                if c.pose_correction && self.state.step >= c.pose_warmup_steps {
                     pose_adam.apply(
                         &mut self.frame_params[pose.clone()],
                         &first.frame_grads[pose.clone()],
@@ -1275,16 +1291,22 @@ impl Chunk<'_> {
         let Embedding::PerFrame(params) = shared.embedding else {
             return;
         };
+        let pivot = c.pose_pivot_point();
         for r in 0..rays {
             let ray = self.first_ray + r;
             let slot = shared.ray_frames[ray] as usize;
             let g = &self.ray_grads[r * 6..r * 6 + 6];
             let correction = PoseCorrection::from_params(&params[slot * n + dim..(slot + 1) * n]);
             let label = &shared.rays[ray * RAY_FLOATS + 9..ray * RAY_FLOATS + 12];
-            let d_v = correction.rotation_vjp(
+            let mut d_v = correction.rotation_vjp(
                 Vec3::new(label[0], label[1], label[2]),
                 Vec3::new(g[3], g[4], g[5]),
             );
+            // With a pivot the origin is p + R (c - p) + u: the rotation also moves it.
+            if let (Some(p), Some(meta)) = (pivot, shared.frame_meta.get(slot)) {
+                let arm = Vec3::from_array(meta.center) - p;
+                d_v += correction.rotation_vjp(arm, Vec3::new(g[0], g[1], g[2]));
+            }
             let dst = &mut self.frame_grads[slot * n + dim..(slot + 1) * n];
             for a in 0..3 {
                 dst[a] += g[a];
@@ -1638,6 +1660,7 @@ fn backward_layer(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::PosePivot;
     use glam::Mat3;
 
     /// A small field with embeddings and pose correction, one 8x8 frame seen from inside the
@@ -1688,7 +1711,14 @@ mod tests {
 
     #[test]
     fn embedding_and_pose_correction_gradients_match_finite_differences() {
-        let config = small_config();
+        for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
+            let mut config = small_config();
+            config.pose_pivot = pivot;
+            check_frame_gradients(config);
+        }
+    }
+
+    fn check_frame_gradients(config: Config) {
         let plan = MemoryPlan::new(&config);
         let mut arena = [0u8; 1 << 20];
         let Some(arena) = arena.get_mut(..plan.total) else {
@@ -1729,7 +1759,8 @@ mod tests {
             let scale = numeric.abs().max(analytic[i].abs()).max(1e-4);
             assert!(
                 (analytic[i] - numeric).abs() / scale < 0.05,
-                "parameter {i}: analytic {} vs numeric {numeric}",
+                "{:?}, parameter {i}: analytic {} vs numeric {numeric}",
+                config.pose_pivot,
                 analytic[i]
             );
         }
