@@ -100,18 +100,7 @@ pub fn run_variant(
     }
     let train_seconds = start.elapsed().as_secs_f64();
     let scores = train::evaluate(&mut trainer, &executor, dataset, test_idx, fit_steps, None)?;
-    let mut per_view = Vec::with_capacity(scores.len());
-    for (score, &index) in scores.iter().zip(test_idx) {
-        let frame = &dataset.frames[index];
-        let metrics = report::score_view(
-            &score.render,
-            &frame.pixels,
-            frame.camera.width as usize,
-            frame.camera.height as usize,
-        )
-        .map_err(|e| HostError::invalid(&frame.name, e.to_string()))?;
-        per_view.push(metrics);
-    }
+    let per_view = train::view_metrics(dataset, &scores)?;
     let (pose_before, pose_after) = match truth {
         Some(truth) => {
             let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
