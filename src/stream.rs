@@ -235,7 +235,7 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         &mut |event| match event {
             Event::Frame { fate, mse, .. } => {
                 let fate = match fate {
-                    Fate::Stored { slot, .. } => format!("-> slot {slot}"),
+                    Fate::Stored { slot } => format!("-> slot {slot}"),
                     Fate::Rejected => "rejected".into(),
                     Fate::HeldOut => "held out".into(),
                 };

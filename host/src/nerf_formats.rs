@@ -114,6 +114,7 @@ pub fn load_nerf_synthetic_transforms(json_path: &Path, options: &LoadOptions) -
 /// A NeRF-synthetic `transforms_*.json` opened for reading one frame at a time: the JSON is
 /// checked when it opens, an image is decoded only when its frame is asked for.
 pub struct SyntheticReader {
+    json_path: PathBuf,
     jobs: Vec<FrameJob>,
     angle_x: f64,
     angle_y: Option<f64>,
@@ -159,6 +160,7 @@ impl SyntheticReader {
             .first()
             .and_then(|job| image::image_dimensions(&job.image).ok());
         Ok(SyntheticReader {
+            json_path: json_path.to_path_buf(),
             jobs,
             angle_x,
             angle_y,
@@ -199,9 +201,10 @@ impl SyntheticReader {
 
     /// Frame `index`, decoded; its image must have the first image's size.
     pub fn frame(&self, index: usize) -> Result<Frame> {
-        let job = self.jobs.get(index).ok_or_else(|| {
-            HostError::invalid(PathBuf::from("transforms"), format!("no frame {index}"))
-        })?;
+        let job = self
+            .jobs
+            .get(index)
+            .ok_or_else(|| HostError::invalid(&self.json_path, format!("no frame {index}")))?;
         let image = decode_frame(job, &self.options)?;
         if let Some((w, h)) = self.first_size.filter(|&size| size != image.source_size) {
             return Err(HostError::invalid(

@@ -419,10 +419,12 @@ impl SpeedPlusReader {
             )
         })?;
         let camera = SpeedCamera::read(&camera_file)?;
-        let entries = read_json(&label_file)?
-            .as_array()
-            .cloned()
-            .ok_or_else(|| HostError::invalid(&label_file, "expected a JSON list of labels"))?;
+        let Value::Array(entries) = read_json(&label_file)? else {
+            return Err(HostError::invalid(
+                &label_file,
+                "expected a JSON list of labels",
+            ));
+        };
         let images_dir = find_images_dir(&label_dir, options)?;
         let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
         let truth_file = label_dir.join("truth.json");

@@ -31,8 +31,8 @@ use glam::Vec3;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Ingested {
-    /// Stored in `slot`; `evicted` is the arrival number of the frame it replaced.
-    Stored { slot: usize, evicted: Option<u32> },
+    /// Stored in `slot`, replacing whatever it held.
+    Stored { slot: usize },
     /// The policy kept the held frames instead.
     Rejected,
 }

@@ -607,10 +607,9 @@ impl<'a> Trainer<'a> {
         else {
             return Ok(Ingested::Rejected);
         };
-        let evicted = self.frames.meta(slot).map(|m| m.arrival);
         self.set_frame(slot, camera, pose, pixels, mask)?;
         self.frames.set_arrival(slot, arrival);
-        Ok(Ingested::Stored { slot, evicted })
+        Ok(Ingested::Stored { slot })
     }
 
     /// The ray through pixel `(i, j)` of a camera at `pose`: origin and unit direction.

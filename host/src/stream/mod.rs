@@ -113,10 +113,9 @@ impl StreamState {
 /// What happened to an arriving frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Fate {
-    /// Into `slot`, replacing the frame from source position `evicted`.
+    /// Into `slot`, replacing whatever it held.
     Stored {
         slot: usize,
-        evicted: Option<u64>,
     },
     /// The policy kept the held frames.
     Rejected,
@@ -341,13 +340,12 @@ fn ingest(
         )
         .map_err(|e| core_error(&frame.name, e))?;
     Ok(match ingested {
-        Ingested::Stored { slot, .. } => {
+        Ingested::Stored { slot } => {
             state.stored += 1;
-            let evicted = state
-                .slot_positions
-                .get_mut(slot)
-                .and_then(|held| held.replace(position));
-            Fate::Stored { slot, evicted }
+            if let Some(held) = state.slot_positions.get_mut(slot) {
+                *held = Some(position);
+            }
+            Fate::Stored { slot }
         }
         Ingested::Rejected => {
             state.rejected += 1;
