@@ -274,6 +274,14 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
             format!("{:.3}", after.rotation_deg_mean),
             format!("{:.1}", before.translation_mean * 1000.0),
             format!("{:.1}", after.translation_mean * 1000.0),
+            format!(
+                "{:.3} / {:.3}",
+                before.about_view_axis_deg_mean, after.about_view_axis_deg_mean
+            ),
+            format!(
+                "{:.3} / {:.3}",
+                before.across_view_axis_deg_mean, after.across_view_axis_deg_mean
+            ),
         ]);
     }
     let header = [
@@ -287,6 +295,8 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
         "rot. error corrected deg",
         "trans. error labels mm",
         "trans. error corrected mm",
+        "rot. about view axis labels / corrected deg",
+        "rot. across view axis labels / corrected deg",
     ];
     let mut text = format!(
         "# Pose-noise sweep on `synthetic`\n\n{} frames of {} px, {} steps per model; JNB: paper variant, lower is sharper.\n\n",

@@ -150,12 +150,30 @@ fn jnb_blur(gray: &ImageRef<u8>) -> Result<f64, MetricError> {
 /// give exactly 0, and f32 rounding in the matrices does not show up as a spurious 0.03°. It
 /// needs no clamping either, and is insensitive to a uniform scale error in the matrices.
 pub fn rotation_error_deg(a: &Pose, b: &Pose) -> f64 {
+    relative_rotation(a, b).1.to_degrees()
+}
+
+/// The rotation error of `rotation_error_deg` split by its axis in camera `a`'s frame, in
+/// degrees: the part about the optical axis (the image turns in its own plane, which every
+/// edge of the target shows) and the part across it (the camera turns about the target, which
+/// only the target's relief shows). The two add up in quadrature to the whole angle, except at
+/// exactly 180 degrees, whose axis this does not recover (it gives 0 and 0).
+pub fn rotation_error_split_deg(a: &Pose, b: &Pose) -> (f64, f64) {
+    let (axis, angle) = relative_rotation(a, b);
+    (
+        (angle * axis.z.abs()).to_degrees(),
+        (angle * axis.truncate().length()).to_degrees(),
+    )
+}
+
+/// Unit axis (zero for no rotation) and angle in [0, pi] of `R_a^T R_b`.
+fn relative_rotation(a: &Pose, b: &Pose) -> (DVec3, f64) {
     let relative = a.rotation.as_dmat3().transpose() * b.rotation.as_dmat3();
     let (x, y, z) = (relative.x_axis, relative.y_axis, relative.z_axis);
     // Column-major: m(row, col) is `<col>_axis.<row>`.
     let axial = DVec3::new(y.z - z.y, z.x - x.z, x.y - y.x);
     let twice_cos = x.x + y.y + z.z - 1.0;
-    axial.length().atan2(twice_cos).to_degrees()
+    (axial.normalize_or_zero(), axial.length().atan2(twice_cos))
 }
 
 /// Distance between the two camera centres, in the dataset's units (metres for SPEED+/SHIRT).
@@ -170,6 +188,10 @@ pub struct PoseErrors {
     pub rotation_deg_median: f64,
     pub translation_mean: f64,
     pub translation_median: f64,
+    /// Mean of the rotation error's parts about and across the optical axis
+    /// (`rotation_error_split_deg`).
+    pub about_view_axis_deg_mean: f64,
+    pub across_view_axis_deg_mean: f64,
     /// Number of frames compared.
     pub frames: usize,
 }
@@ -185,6 +207,10 @@ pub fn pose_errors(estimated: &[Pose], truth: &[Pose]) -> PoseErrors {
         .clone()
         .map(|(e, t)| rotation_error_deg(e, t))
         .collect();
+    let (about, across): (Vec<f64>, Vec<f64>) = pairs
+        .clone()
+        .map(|(e, t)| rotation_error_split_deg(t, e))
+        .unzip();
     let translations: Vec<f64> = pairs.map(|(e, t)| translation_error(e, t)).collect();
     if rotations.is_empty() {
         return PoseErrors::default();
@@ -194,6 +220,8 @@ pub fn pose_errors(estimated: &[Pose], truth: &[Pose]) -> PoseErrors {
         rotation_deg_median: median(&rotations),
         translation_mean: mean(&translations),
         translation_median: median(&translations),
+        about_view_axis_deg_mean: mean(&about),
+        across_view_axis_deg_mean: mean(&across),
         frames: rotations.len(),
     }
 }
@@ -315,10 +343,12 @@ pub fn pose_error_table(rows: &[(String, PoseErrors, PoseErrors)]) -> String {
         "rot before median (deg)",
         "trans before mean",
         "trans before median",
+        "rot before about / across view axis (deg)",
         "rot after mean (deg)",
         "rot after median (deg)",
         "trans after mean",
         "trans after median",
+        "rot after about / across view axis (deg)",
     ];
     let body: Vec<Vec<String>> = rows
         .iter()
@@ -330,6 +360,10 @@ pub fn pose_error_table(rows: &[(String, PoseErrors, PoseErrors)]) -> String {
                     format!("{:.3}", errors.rotation_deg_median),
                     format!("{:.4}", errors.translation_mean),
                     format!("{:.4}", errors.translation_median),
+                    format!(
+                        "{:.3} / {:.3}",
+                        errors.about_view_axis_deg_mean, errors.across_view_axis_deg_mean
+                    ),
                 ]);
             }
             cells
@@ -1074,6 +1108,41 @@ mod tests {
     }
 
     #[test]
+    fn rotation_error_splits_about_and_across_the_view_axis() {
+        let base = Mat3::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0);
+        let a = pose(base, Vec3::ZERO);
+        let deg = |d: f32| d.to_radians();
+        // Turning camera a about its own optical axis (+z) is all "about"; about x, all "across".
+        let (about, across) = rotation_error_split_deg(
+            &a,
+            &pose(base * Mat3::from_rotation_z(deg(2.0)), Vec3::ZERO),
+        );
+        assert!(
+            (about - 2.0).abs() < 1e-4 && across.abs() < 1e-4,
+            "{about} {across}"
+        );
+        let (about, across) = rotation_error_split_deg(
+            &a,
+            &pose(base * Mat3::from_rotation_x(deg(3.0)), Vec3::ZERO),
+        );
+        assert!(
+            about.abs() < 1e-4 && (across - 3.0).abs() < 1e-4,
+            "{about} {across}"
+        );
+        // A mixed axis splits by its components; the parts add up in quadrature to the angle.
+        let axis = Vec3::new(3.0, 0.0, 4.0).normalize();
+        let mixed = pose(base * Mat3::from_axis_angle(axis, deg(5.0)), Vec3::ZERO);
+        let (about, across) = rotation_error_split_deg(&a, &mixed);
+        assert!(
+            (about - 4.0).abs() < 1e-4 && (across - 3.0).abs() < 1e-4,
+            "{about} {across}"
+        );
+        let whole = rotation_error_deg(&a, &mixed);
+        assert!((about.hypot(across) - whole).abs() < 1e-6);
+        assert_eq!(rotation_error_split_deg(&a, &a), (0.0, 0.0));
+    }
+
+    #[test]
     fn rotation_error_of_known_rotations() {
         let base = Mat3::from_rotation_z(0.7) * Mat3::from_rotation_x(-1.2);
         let a = pose(base, Vec3::ZERO);
@@ -1132,6 +1201,12 @@ mod tests {
         let errors = pose_errors(&estimated, &truth);
         assert_eq!(errors.frames, 4);
         assert!((errors.rotation_deg_mean - 4.0).abs() < 1e-4, "{errors:?}");
+        // The offsets turn the cameras about their x axes: all across the view axis.
+        assert!(errors.about_view_axis_deg_mean.abs() < 1e-4, "{errors:?}");
+        assert!(
+            (errors.across_view_axis_deg_mean - 4.0).abs() < 1e-4,
+            "{errors:?}"
+        );
         assert!(
             (errors.rotation_deg_median - 2.5).abs() < 1e-4,
             "{errors:?}"
@@ -1223,10 +1298,13 @@ mod tests {
             rotation_deg_median: 1.0,
             translation_mean: 0.012345,
             translation_median: 0.01,
+            about_view_axis_deg_mean: 0.5,
+            across_view_axis_deg_mean: 1.1,
             frames: 400,
         };
         let after = PoseErrors {
             rotation_deg_mean: 0.2,
+            about_view_axis_deg_mean: 0.1,
             ..before
         };
         let table = pose_error_table(&[("ours".into(), before, after)]);
@@ -1238,10 +1316,20 @@ mod tests {
             .map(str::trim)
             .collect();
         assert_eq!(
-            row[1..11],
+            row[1..13],
             [
-                "ours", "400", "1.235", "1.000", "0.0123", "0.0100", "0.200", "1.000", "0.0123",
-                "0.0100"
+                "ours",
+                "400",
+                "1.235",
+                "1.000",
+                "0.0123",
+                "0.0100",
+                "0.500 / 1.100",
+                "0.200",
+                "1.000",
+                "0.0123",
+                "0.0100",
+                "0.100 / 1.100"
             ]
         );
     }
