@@ -464,7 +464,8 @@ fn run_bench(args: &BenchArgs) -> CliResult {
 }
 
 /// The demo's budget: the lightbox preset at 128 px, trained with appearance embeddings and
-/// pose correction (143 s from start to report on the idle 2-core machine; see README).
+/// pose correction (under 4 minutes from start to report on the idle 2-core machine; timed in
+/// the README).
 const DEMO_FRAMES: u32 = 200;
 const DEMO_SIZE: u16 = 128;
 const DEMO_STEPS: u32 = 2000;

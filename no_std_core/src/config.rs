@@ -148,6 +148,12 @@ pub struct Config {
 }
 
 impl Config {
+    /// Whether the pose corrections learn at training step `step` (they are on and past
+    /// their warm-up).
+    pub const fn pose_learns_at(&self, step: u32) -> bool {
+        self.pose_correction && step >= self.pose_warmup_steps
+    }
+
     /// The point pose corrections turn cameras about, if not their own centres.
     pub fn pose_pivot_point(&self) -> Option<glam::Vec3> {
         match self.pose_pivot {

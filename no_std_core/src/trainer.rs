@@ -99,6 +99,9 @@ struct Shared<'s> {
     /// Only the fixed embedding is being fitted: the backward pass stops at the colour MLP's
     /// input and sends the embedding's gradient to the chunk's first frame-gradient slot.
     fit_embedding: bool,
+    /// The pose corrections learn from this pass: the backward pass carries gradients on to
+    /// the rays' origins and directions and folds them into the frames' corrections.
+    pose_gradients: bool,
 }
 
 /// Activation rows of one mini-batch of `LANES` samples (or their gradients).
@@ -524,6 +527,8 @@ impl<'a> Trainer<'a> {
         jitter: bool,
         fit_embedding: bool,
     ) -> Shared<'s> {
+        let pose_gradients =
+            matches!(embedding, Embedding::PerFrame(_)) && self.config.pose_learns_at(step);
         Shared {
             config: &self.config,
             geometry: &self.geometry,
@@ -544,6 +549,7 @@ impl<'a> Trainer<'a> {
             step,
             jitter,
             fit_embedding,
+            pose_gradients,
         }
     }
 
@@ -797,7 +803,7 @@ impl<'a> Trainer<'a> {
                     &mut self.frame_m[emb.clone()],
                     &mut self.frame_v[emb],
                 );
-                if c.pose_correction && self.state.step >= c.pose_warmup_steps {
+                if c.pose_learns_at(self.state.step) {
                     pose_adam.apply(
                         &mut self.frame_params[pose.clone()],
                         &first.frame_grads[pose.clone()],
@@ -1266,11 +1272,11 @@ impl Chunk<'_> {
                 &mut self.d_rgb[start..end],
             );
         }
-        if c.pose_correction {
+        if shared.pose_gradients {
             self.ray_grads.fill(0.0);
         }
         self.backward(shared, n);
-        if c.pose_correction {
+        if shared.pose_gradients {
             self.fold_ray_gradients(shared, rays);
         }
         self.report = ChunkReport {
@@ -1442,7 +1448,7 @@ impl Chunk<'_> {
                 touched: self.touched,
             };
             let mut d_feat = [0.0f32; 4 * 64];
-            let pose = c.pose_correction;
+            let pose = shared.pose_gradients;
             let extent = shared.aabb.max - shared.aabb.min;
             for l in 0..lanes {
                 for k in 0..features {
@@ -1717,13 +1723,30 @@ mod tests {
         }
     }
 
-    fn check_frame_gradients(config: Config) {
-        let plan = MemoryPlan::new(&config);
+    #[test]
+    fn pose_corrections_neither_learn_nor_get_gradients_during_the_warm_up() {
+        let mut config = small_config();
+        config.pose_warmup_steps = 3;
         let mut arena = [0u8; 1 << 20];
-        let Some(arena) = arena.get_mut(..plan.total) else {
-            panic!("test arena too small: {}", plan.total)
-        };
+        let arena = &mut arena[..MemoryPlan::new(&config).total];
         let mut trainer = Trainer::new(config, arena).unwrap();
+        put_test_frame(&mut trainer);
+        let dim = config.embedding_dim as usize;
+        for _ in 0..3 {
+            let (_, grads) = loss_and_frame_gradients(&mut trainer);
+            assert!(grads[dim..].iter().all(|&g| g == 0.0), "{grads:?}");
+            assert!(grads[..dim].iter().any(|&g| g != 0.0), "{grads:?}");
+            trainer.step(&Sequential).unwrap();
+            assert!(trainer.frame_params[dim..dim + 6].iter().all(|&p| p == 0.0));
+        }
+        let (_, grads) = loss_and_frame_gradients(&mut trainer);
+        assert!(grads[dim..].iter().any(|&g| g != 0.0), "{grads:?}");
+        trainer.step(&Sequential).unwrap();
+        assert!(trainer.frame_params[dim..dim + 6].iter().any(|&p| p != 0.0));
+    }
+
+    /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
+    fn put_test_frame(trainer: &mut Trainer<'_>) {
         let camera = Camera {
             width: 8,
             height: 8,
@@ -1743,6 +1766,16 @@ mod tests {
             *p = (rng.uniform() * 255.0) as u8;
         }
         trainer.set_frame(0, camera, pose, &pixels, None).unwrap();
+    }
+
+    fn check_frame_gradients(config: Config) {
+        let plan = MemoryPlan::new(&config);
+        let mut arena = [0u8; 1 << 20];
+        let Some(arena) = arena.get_mut(..plan.total) else {
+            panic!("test arena too small: {}", plan.total)
+        };
+        let mut trainer = Trainer::new(config, arena).unwrap();
+        put_test_frame(&mut trainer);
         let start = [0.3, -0.2, 0.1, 0.25, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03];
         trainer.frame_params[..10].copy_from_slice(&start);
         let (_, analytic) = loss_and_frame_gradients(&mut trainer);
