@@ -31,13 +31,21 @@ pub struct AblateArgs {
     /// Model and training config (TOML; default: the built-in default config).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Run the pose-noise sweep on the `synthetic` preset instead.
+    /// Run the pose-noise sweeps on the `synthetic` preset instead.
     #[arg(long)]
     pub pose_noise: bool,
-    /// Rotation-noise levels of the sweep, in degrees (each with 10 mm of translation noise
-    /// per degree, as in the paper); default: the paper's five.
-    #[arg(long, value_delimiter = ',', default_values_t = NOISE_LEVELS_DEG)]
+    /// Which of the paper's two sweeps to run: rotation noise alone, translation noise alone,
+    /// or both (sharing the noise-free level).
+    #[arg(long, value_enum, default_value_t = Sweep::Both)]
+    pub sweep: Sweep,
+    /// Rotation-noise levels of the rotation sweep (standard deviation of the label's
+    /// rotation angle, degrees); default: the paper's five.
+    #[arg(long, value_delimiter = ',', default_values_t = ROTATION_LEVELS_DEG)]
     pub levels: Vec<f32>,
+    /// Translation-noise levels of the translation sweep (standard deviation per axis of the
+    /// label's position, mm); default: the paper's five.
+    #[arg(long, value_delimiter = ',', default_values_t = TRANSLATION_LEVELS_MM)]
+    pub translation_levels: Vec<f32>,
     /// Every N-th view is held out.
     #[arg(long, default_value_t = 8)]
     pub holdout: usize,
@@ -52,10 +60,19 @@ pub struct AblateArgs {
 
 type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 
-/// The paper's sweep: rotation noise on the labels, in degrees.
-const NOISE_LEVELS_DEG: [f32; 5] = [0.0, 0.2, 0.4, 0.8, 1.6];
-/// Translation noise per degree of rotation noise (the paper's pairs: 0.2 deg with 2 mm, ...).
-const TRANSLATION_M_PER_DEG: f32 = 0.01;
+/// The paper's rotation sweep: rotation noise on the labels, in degrees (exact positions).
+const ROTATION_LEVELS_DEG: [f32; 5] = [0.0, 0.2, 0.4, 0.8, 1.6];
+/// The paper's translation sweep: position noise on the labels, in mm (exact attitudes). The
+/// simulated target is TANGO at its real size, as in the paper, so no scaling is needed.
+const TRANSLATION_LEVELS_MM: [f32; 5] = [0.0, 2.0, 4.0, 8.0, 16.0];
+
+/// The paper's two pose-noise sweeps.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sweep {
+    Rotation,
+    Translation,
+    Both,
+}
 
 /// Simulate `scene` (with optional label noise) into `out` and load it with its exact poses.
 pub fn simulated(
@@ -207,118 +224,221 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
     Ok(())
 }
 
-fn sweep(args: &AblateArgs) -> Fallible<()> {
-    let base = base_config(args)?;
-    let mut rows = Vec::new();
-    let (mut ssim_ours, mut ssim_pose, mut rot_labels, mut rot_pose) =
-        (vec![], vec![], vec![], vec![]);
-    for (i, &rotation_deg) in args.levels.iter().enumerate() {
-        if !(rotation_deg.is_finite() && rotation_deg >= 0.0) {
-            return Err(
-                format!("--levels: {rotation_deg} is not a rotation noise in degrees").into(),
-            );
-        }
-        let translation_m = rotation_deg * TRANSLATION_M_PER_DEG;
-        let noise = LabelNoise {
-            rotation_deg,
-            translation_m,
-        };
-        let (dataset, truth) = simulated(
-            "synthetic",
-            args.frames,
-            args.size,
-            Some(noise),
-            &args.out.join(format!("noise_{i}")),
+/// One noise level of a sweep: the two models (ours, ours + pose) trained on the same
+/// simulated labels.
+struct Level {
+    noise: LabelNoise,
+    ours: VariantResult,
+    pose: VariantResult,
+}
+
+fn run_level(args: &AblateArgs, base: &Config, noise: LabelNoise, dir: &Path) -> Fallible<Level> {
+    let (dataset, truth) = simulated("synthetic", args.frames, args.size, Some(noise), dir)?;
+    let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
+    println!(
+        "noise {} deg / {} mm",
+        noise.rotation_deg,
+        noise.translation_m * 1000.0
+    );
+    let run = |variant| -> Fallible<VariantResult> {
+        let r = ablation::run_variant(
+            &dataset,
+            truth.as_deref(),
+            &train_idx,
+            &test_idx,
+            base,
+            variant,
+            args.threads,
+            args.fit_steps,
+            &mut |_| {},
         )?;
-        let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
+        let after = r.pose_after.unwrap_or_default();
         println!(
-            "noise {rotation_deg} deg / {:.0} mm",
-            translation_m * 1000.0
+            "  {}: SSIM {:.4}, rotation error {:.3} deg, position error {:.1} mm",
+            variant.name,
+            r.metrics.ssim_full,
+            after.rotation_deg_mean,
+            after.translation_mean * 1000.0
         );
-        let mut level = Vec::new();
-        for variant in [APPEARANCE, APPEARANCE_POSE] {
-            let r = ablation::run_variant(
-                &dataset,
-                truth.as_deref(),
-                &train_idx,
-                &test_idx,
-                &base,
-                variant,
-                args.threads,
-                args.fit_steps,
-                &mut |_| {},
-            )?;
-            println!(
-                "  {}: SSIM {:.4}, rotation error {:.3} deg",
-                variant.name,
-                r.metrics.ssim_full,
-                r.pose_after.unwrap_or_default().rotation_deg_mean
-            );
-            level.push(r);
-        }
-        let (ours, pose) = (&level[0], &level[1]);
-        let before = pose.pose_before.unwrap_or_default();
-        let after = pose.pose_after.unwrap_or_default();
-        ssim_ours.push((rotation_deg as f64, ours.metrics.ssim_full));
-        ssim_pose.push((rotation_deg as f64, pose.metrics.ssim_full));
-        rot_labels.push((rotation_deg as f64, before.rotation_deg_mean));
-        rot_pose.push((rotation_deg as f64, after.rotation_deg_mean));
-        rows.push(vec![
-            format!("{rotation_deg}"),
-            format!("{:.0}", translation_m * 1000.0),
-            format!("{:.4}", ours.metrics.ssim_full),
-            format!("{:.4}", pose.metrics.ssim_full),
-            format!("{:.4}", ours.metrics.jnb_full),
-            format!("{:.4}", pose.metrics.jnb_full),
-            format!("{:.3}", before.rotation_deg_mean),
-            format!("{:.3}", after.rotation_deg_mean),
-            format!("{:.1}", before.translation_mean * 1000.0),
-            format!("{:.1}", after.translation_mean * 1000.0),
-            format!(
-                "{:.3} / {:.3}",
-                before.about_view_axis_deg_mean, after.about_view_axis_deg_mean
-            ),
-            format!(
-                "{:.3} / {:.3}",
-                before.across_view_axis_deg_mean, after.across_view_axis_deg_mean
-            ),
-        ]);
+        Ok(r)
+    };
+    let ours = run(APPEARANCE)?;
+    let pose = run(APPEARANCE_POSE)?;
+    Ok(Level { noise, ours, pose })
+}
+
+/// One of the two sweeps: its levels, its section of the report and its plots.
+struct SweepSpec {
+    on: bool,
+    noises: Vec<LabelNoise>,
+    title: &'static str,
+    column: &'static str,
+    /// File name stem of its plots.
+    name: &'static str,
+    axis: &'static str,
+    level: fn(&LabelNoise) -> f32,
+    error_label: &'static str,
+    error: fn(&report::PoseErrors) -> f64,
+}
+
+fn check_levels(flag: &str, levels: &[f32]) -> Fallible<()> {
+    match levels.iter().find(|l| !(l.is_finite() && **l >= 0.0)) {
+        Some(bad) => Err(format!("{flag}: {bad} is not a noise level").into()),
+        None => Ok(()),
     }
+}
+
+/// Both sweeps of the paper: rotation noise alone, then translation noise alone (the noise-free
+/// level is trained once and shared). Per level: SSIM and JNB of ours with and without pose
+/// correction, and the pose error of the labels before and after correction.
+fn sweep(args: &AblateArgs) -> Fallible<()> {
+    check_levels("--levels", &args.levels)?;
+    check_levels("--translation-levels", &args.translation_levels)?;
+    let base = base_config(args)?;
+    let rotation_noise = |deg: f32| LabelNoise {
+        rotation_deg: deg,
+        translation_m: 0.0,
+    };
+    let translation_noise = |mm: f32| LabelNoise {
+        rotation_deg: 0.0,
+        translation_m: mm / 1000.0,
+    };
+    let sweeps = [
+        SweepSpec {
+            on: args.sweep != Sweep::Translation,
+            noises: args.levels.iter().map(|&d| rotation_noise(d)).collect(),
+            title: "Rotation noise (exact positions)",
+            column: "E_R deg",
+            name: "rotation",
+            axis: "rotation noise (deg)",
+            level: |n| n.rotation_deg,
+            error_label: "rotation error (deg)",
+            error: |e| e.rotation_deg_mean,
+        },
+        SweepSpec {
+            on: args.sweep != Sweep::Rotation,
+            noises: (args.translation_levels.iter())
+                .map(|&mm| translation_noise(mm))
+                .collect(),
+            title: "Translation noise (exact attitudes)",
+            column: "E_T mm",
+            name: "translation",
+            axis: "translation noise (mm)",
+            level: |n| n.translation_m * 1000.0,
+            error_label: "camera position error (mm)",
+            error: |e| e.translation_mean * 1000.0,
+        },
+    ];
+    let mut levels: Vec<Level> = Vec::new();
+    for &noise in sweeps.iter().filter(|s| s.on).flat_map(|s| &s.noises) {
+        if levels.iter().any(|l| l.noise == noise) {
+            continue;
+        }
+        let dir = args.out.join(format!(
+            "noise_r{}deg_t{}mm",
+            noise.rotation_deg,
+            noise.translation_m * 1000.0
+        ));
+        levels.push(run_level(args, &base, noise, &dir)?);
+    }
+    let find = |noise: LabelNoise| levels.iter().find(|l| l.noise == noise);
+    let mut text = format!(
+        "# Pose-noise sweeps on `synthetic`\n\n{} frames of {} px, every {}th held out, {} steps per model, held-out embeddings fitted for {} steps; JNB: paper variant, lower is sharper. Pose errors are the means over the training frames, against the simulator's exact poses.\n",
+        args.frames, args.size, args.holdout, base.steps, args.fit_steps
+    );
+    for sweep in sweeps.iter().filter(|s| s.on) {
+        let rows: Vec<&Level> = sweep.noises.iter().filter_map(|&n| find(n)).collect();
+        let name = sweep.name;
+        writeln!(text, "\n## {}\n", sweep.title)?;
+        text.push_str(&sweep_table(sweep.column, &rows, sweep.level));
+        writeln!(
+            text,
+            "\n![SSIM]({name}_ssim.png)\n![{}]({name}_error.png)",
+            sweep.error_label
+        )?;
+        plot_sweep(&args.out, sweep, &rows)?;
+    }
+    orbit_nerf_host::io::write_atomic(&args.out.join("pose_noise.md"), text.as_bytes())?;
+    println!("{text}");
+    Ok(())
+}
+
+/// One sweep's table: a row per level, the level in the first column.
+fn sweep_table(level_header: &str, rows: &[&Level], level: fn(&LabelNoise) -> f32) -> String {
     let header = [
-        "E_R deg",
-        "E_T mm",
+        level_header,
         "SSIM ours",
         "SSIM ours+pose",
         "JNB ours",
         "JNB ours+pose",
-        "rot. error labels deg",
-        "rot. error corrected deg",
-        "trans. error labels mm",
-        "trans. error corrected mm",
-        "rot. about view axis labels / corrected deg",
-        "rot. across view axis labels / corrected deg",
+        "rot. error labels / corrected deg",
+        "about view axis labels / corrected deg",
+        "across view axis labels / corrected deg",
+        "position error labels / corrected mm",
     ];
-    let mut text = format!(
-        "# Pose-noise sweep on `synthetic`\n\n{} frames of {} px, {} steps per model; JNB: paper variant, lower is sharper.\n\n",
-        args.frames, args.size, base.steps
-    );
-    text.push_str(&report::markdown_table(&header, &rows));
-    text.push_str("\n![SSIM](pose_noise_ssim.png)\n![rotation error](pose_noise_rotation.png)\n");
+    let rows: Vec<Vec<String>> = rows
+        .iter()
+        .map(|l| {
+            let (ours, pose) = (&l.ours, &l.pose);
+            let before = pose.pose_before.unwrap_or_default();
+            let after = pose.pose_after.unwrap_or_default();
+            vec![
+                format!("{}", level(&l.noise)),
+                format!("{:.4}", ours.metrics.ssim_full),
+                format!("{:.4}", pose.metrics.ssim_full),
+                format!("{:.4}", ours.metrics.jnb_full),
+                format!("{:.4}", pose.metrics.jnb_full),
+                format!(
+                    "{:.3} / {:.3}",
+                    before.rotation_deg_mean, after.rotation_deg_mean
+                ),
+                format!(
+                    "{:.3} / {:.3}",
+                    before.about_view_axis_deg_mean, after.about_view_axis_deg_mean
+                ),
+                format!(
+                    "{:.3} / {:.3}",
+                    before.across_view_axis_deg_mean, after.across_view_axis_deg_mean
+                ),
+                format!(
+                    "{:.1} / {:.1}",
+                    before.translation_mean * 1000.0,
+                    after.translation_mean * 1000.0
+                ),
+            ]
+        })
+        .collect();
+    report::markdown_table(&header, &rows)
+}
+
+/// `NAME_ssim.png` (held-out SSIM with and without pose correction) and `NAME_error.png` (the
+/// labels' pose error before and after correction) against the noise level.
+fn plot_sweep(out: &Path, sweep: &SweepSpec, rows: &[&Level]) -> Fallible<()> {
+    let points = |f: &dyn Fn(&Level) -> f64| -> Vec<(f64, f64)> {
+        rows.iter()
+            .map(|l| ((sweep.level)(&l.noise) as f64, f(l)))
+            .collect()
+    };
+    let error = |errors: Option<report::PoseErrors>| (sweep.error)(&errors.unwrap_or_default());
     report::line_plot(
-        &args.out.join("pose_noise_ssim.png"),
-        "held-out SSIM vs label rotation noise",
-        "rotation noise (deg)",
+        &out.join(format!("{}_ssim.png", sweep.name)),
+        &format!("held-out SSIM vs {}", sweep.axis),
+        sweep.axis,
         "SSIM",
-        &[("ours", ssim_ours), ("ours + pose", ssim_pose)],
+        &[
+            ("ours", points(&|l| l.ours.metrics.ssim_full)),
+            ("ours + pose", points(&|l| l.pose.metrics.ssim_full)),
+        ],
     )?;
     report::line_plot(
-        &args.out.join("pose_noise_rotation.png"),
-        "mean rotation error of the training poses",
-        "rotation noise (deg)",
-        "error (deg)",
-        &[("labels", rot_labels), ("corrected", rot_pose)],
+        &out.join(format!("{}_error.png", sweep.name)),
+        &format!("{} of the training poses", sweep.error_label),
+        sweep.axis,
+        sweep.error_label,
+        &[
+            ("labels", points(&|l| error(l.pose.pose_before))),
+            ("corrected", points(&|l| error(l.pose.pose_after))),
+        ],
     )?;
-    orbit_nerf_host::io::write_atomic(&args.out.join("pose_noise.md"), text.as_bytes())?;
-    println!("{text}");
     Ok(())
 }

@@ -135,13 +135,20 @@ fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     let _ = std::fs::remove_dir_all(&empty);
 }
 
+/// The simulator's presets need `../shared/data` (camera, landmarks).
+fn shared_data_present() -> bool {
+    let present = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/speedplus/camera.json")
+        .is_file();
+    if !present {
+        eprintln!("skipping: ../shared/data not found");
+    }
+    present
+}
+
 #[test]
 fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
-    if !Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/speedplus/camera.json")
-        .is_file()
-    {
-        eprintln!("skipping: ../shared/data not found");
+    if !shared_data_present() {
         return;
     }
     let out = temp_dir("ablate");
@@ -167,5 +174,72 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
     }
     assert!(report.contains("Pose error"), "{report}");
     assert!(out.join("compare_view_000.png").is_file());
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn pose_noise_sweeps_vary_one_kind_of_noise_each_and_share_the_noise_free_level() {
+    if !shared_data_present() {
+        return;
+    }
+    let out = temp_dir("sweep");
+    let (ok, text) = orbit_nerf(&[
+        "ablate",
+        "--pose-noise",
+        "--levels",
+        "0,1.6",
+        "--translation-levels",
+        "0,16",
+        "--frames",
+        "16",
+        "--size",
+        "48",
+        "--steps",
+        "30",
+        "--fit-steps",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    // Three levels, not four: the noise-free one is trained once for both sweeps.
+    assert_eq!(
+        text.lines().filter(|l| l.starts_with("noise ")).count(),
+        3,
+        "{text}"
+    );
+    let report = std::fs::read_to_string(out.join("pose_noise.md")).unwrap();
+    let row = |section: &str, level: &str| -> Vec<String> {
+        let part = report
+            .split(section)
+            .nth(1)
+            .unwrap_or_else(|| panic!("{report}"));
+        let line = part
+            .lines()
+            .find(|l| l.starts_with(&format!("| {level} ")))
+            .unwrap_or_else(|| panic!("no row {level} under {section}:\n{report}"));
+        line.split('|').map(|c| c.trim().to_string()).collect()
+    };
+    // Columns: level, SSIM x2, JNB x2, rotation, about, across, position (labels / corrected).
+    let labels = |cell: &str| -> f64 { cell.split(" / ").next().unwrap().parse().unwrap() };
+    let rotation = row("## Rotation noise", "1.6");
+    assert!(labels(&rotation[6]) > 0.5, "{rotation:?}");
+    let translation = row("## Translation noise", "16");
+    assert_eq!(labels(&translation[6]), 0.0, "{translation:?}");
+    assert!(labels(&translation[9]) > 10.0, "{translation:?}");
+    let clean = row("## Rotation noise", "0");
+    assert_eq!(
+        (labels(&clean[6]), labels(&clean[9])),
+        (0.0, 0.0),
+        "{clean:?}"
+    );
+    for plot in [
+        "rotation_ssim",
+        "rotation_error",
+        "translation_ssim",
+        "translation_error",
+    ] {
+        assert!(out.join(format!("{plot}.png")).is_file(), "{plot}");
+    }
     let _ = std::fs::remove_dir_all(&out);
 }

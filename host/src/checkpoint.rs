@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 /// First bytes of every checkpoint file.
 pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// The payload encoding this build writes and the only one it reads.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// Magic + version + payload length + CRC-32.
 const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
@@ -236,7 +236,7 @@ mod tests {
         bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
         let message = load_err(&path, &bytes);
         assert!(
-            message.contains("format version 7, this build reads version 1"),
+            message.contains("format version 7, this build reads version 2"),
             "{message}"
         );
     }

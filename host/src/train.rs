@@ -28,6 +28,7 @@ pub struct ConfigDef {
     pub aabb_min: [f32; 3],
     pub aabb_max: [f32; 3],
     pub background: [f32; 3],
+    pub random_background: bool,
     pub occupancy_res: u16,
     pub occupancy_every: u32,
     pub occupancy_threshold: f32,

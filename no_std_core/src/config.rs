@@ -90,6 +90,13 @@ pub struct Config {
     pub aabb_max: [f32; 3],
     /// Colour behind the scene, composited where rays leave the box.
     pub background: [f32; 3],
+    /// Train the rays of frames that have a foreground mask against a random background
+    /// colour per ray (the pixel recomposited from `background` onto it with the mask as
+    /// alpha), as instant-ngp does. The field must then make the target opaque wherever the
+    /// mask says it is, even where it is as dark as the sky (unlit sides), and empty
+    /// elsewhere; with one fixed background colour such regions are free to stay a haze.
+    /// Frames without a mask, and rendering, use `background`.
+    pub random_background: bool,
     /// Occupancy grid cells per side.
     pub occupancy_res: u16,
     /// Refresh the occupancy grid every this many steps.
@@ -177,6 +184,7 @@ impl Config {
         aabb_min: [-1.5; 3],
         aabb_max: [1.5; 3],
         background: [1.0; 3],
+        random_background: false,
         occupancy_res: 64,
         occupancy_every: 16,
         occupancy_threshold: 0.01,
@@ -497,8 +505,9 @@ pub const fn sample_floats(c: &Config) -> usize {
 }
 
 /// f32 values stored per ray of the batch: origin and direction (pose-corrected), target
-/// colour, and the direction from the pose label (for the pose-correction gradient).
-pub const RAY_FLOATS: usize = 12;
+/// colour, the direction from the pose label (for the pose-correction gradient) and the
+/// background colour the ray is composited on.
+pub const RAY_FLOATS: usize = 15;
 
 impl MemoryPlan {
     pub const fn new(c: &Config) -> MemoryPlan {

@@ -668,14 +668,29 @@ impl<'a> Trainer<'a> {
             };
             let px =
                 &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
+            // The mask as alpha: the pixel was composited onto `background` with it.
+            let alpha = match self.frames.mask(slot) {
+                Some(mask) if c.random_background => mask
+                    .get(pixel as usize)
+                    .map_or(1.0, |&m| m as f32 * (1.0 / 255.0)),
+                _ => 1.0,
+            };
+            let background = if alpha < 1.0 {
+                let bits = rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 3 << 40);
+                [0, 21, 42].map(|shift| ((bits >> shift) & 0x1f_ffff) as f32 / 0x1f_ffff as f32)
+            } else {
+                c.background
+            };
             let ray = &mut self.rays[r * RAY_FLOATS..(r + 1) * RAY_FLOATS];
             let origin = correction.origin(o, c.pose_pivot_point());
             ray[..3].copy_from_slice(&origin.to_array());
             ray[3..6].copy_from_slice(&correction.rotate(d).to_array());
             for ch in 0..3 {
-                ray[6 + ch] = px[ch] as f32 * (1.0 / 255.0);
+                ray[6 + ch] = px[ch] as f32 * (1.0 / 255.0)
+                    + (1.0 - alpha) * (background[ch] - c.background[ch]);
             }
             ray[9..12].copy_from_slice(&d.to_array());
+            ray[12..15].copy_from_slice(&background);
             self.ray_frames[r] = slot as u32;
         }
         Ok(())
@@ -965,6 +980,7 @@ impl<'a> Trainer<'a> {
                     ray[6 + ch] = pixels[p + ch] as f32 * (1.0 / 255.0);
                 }
                 ray[9..12].copy_from_slice(&d.to_array());
+                ray[12..15].copy_from_slice(&c.background);
             }
             let mut chunks = core::mem::take(&mut self.chunks);
             for (i, chunk) in chunks.iter_mut().enumerate() {
@@ -1249,13 +1265,14 @@ impl Chunk<'_> {
         let mut squared_error = 0.0f32;
         for r in 0..rays {
             let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
+            let ray = &shared.rays[(first + r) * RAY_FLOATS..(first + r + 1) * RAY_FLOATS];
             let (colour, _) = render::composite_forward(
                 &self.sigma[start..end],
                 &self.rgb[start..end],
                 shared.step_size,
-                c.background,
+                [ray[12], ray[13], ray[14]],
             );
-            let target = &shared.rays[(first + r) * RAY_FLOATS + 6..(first + r) * RAY_FLOATS + 9];
+            let target = &ray[6..9];
             let mut d_colour = [0.0f32; 3];
             for ch in 0..3 {
                 let e = colour[ch] - target[ch];
@@ -1745,16 +1762,76 @@ mod tests {
         assert!(trainer.frame_params[dim..dim + 6].iter().any(|&p| p != 0.0));
     }
 
-    /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
-    fn put_test_frame(trainer: &mut Trainer<'_>) {
-        let camera = Camera {
+    #[test]
+    fn masked_out_pixels_train_against_a_random_background_per_ray() {
+        let mut config = small_config();
+        config.background = [1.0; 3];
+        config.rays_per_batch = 256;
+        for random_background in [false, true] {
+            config.random_background = random_background;
+            let mut arena = [0u8; 1 << 20];
+            let arena = &mut arena[..MemoryPlan::new(&config).total];
+            let mut trainer = Trainer::new(config, arena).unwrap();
+            let camera = test_camera();
+            let pose = Pose {
+                rotation: Mat3::IDENTITY,
+                center: Vec3::new(0.0, 0.0, -3.0),
+            };
+            // Left half: the target (grey 100, mask 255); right half: white sky (mask 0).
+            let mask: [u8; 64] = core::array::from_fn(|p| if p % 8 < 4 { 255 } else { 0 });
+            let pixels: [u8; 192] =
+                core::array::from_fn(|k| if mask[k / 3] != 0 { 100 } else { 255 });
+            trainer
+                .set_frame(0, camera, pose, &pixels, Some(&mask))
+                .unwrap();
+            trainer.sample_rays().unwrap();
+            let (mut target_rays, mut sky_rays, mut lowest, mut highest) = (0, 0, 1.0f32, 0.0f32);
+            for ray in trainer.rays.chunks_exact(RAY_FLOATS) {
+                let (target, background) = (&ray[6..9], &ray[12..15]);
+                if (target[0] - 100.0 / 255.0).abs() < 1e-6 {
+                    // On the target the pixel is the target, whatever the background.
+                    target_rays += 1;
+                    assert_eq!(background, [1.0; 3]);
+                } else {
+                    // In the sky the target colour is the ray's background.
+                    sky_rays += 1;
+                    for (t, b) in target.iter().zip(background) {
+                        assert!((t - b).abs() < 1e-6, "{target:?} {background:?}");
+                    }
+                    for &b in background {
+                        assert!((0.0..=1.0).contains(&b));
+                        lowest = lowest.min(b);
+                        highest = highest.max(b);
+                    }
+                }
+            }
+            assert!(
+                target_rays > 50 && sky_rays > 50,
+                "{target_rays} {sky_rays}"
+            );
+            if random_background {
+                assert!(lowest < 0.1 && highest > 0.9, "{lowest} {highest}");
+            } else {
+                assert_eq!((lowest, highest), (1.0, 1.0));
+            }
+        }
+    }
+
+    /// The 8x8 camera of the tests' frames.
+    fn test_camera() -> Camera {
+        Camera {
             width: 8,
             height: 8,
             fx: 6.0,
             fy: 6.0,
             cx: 4.0,
             cy: 4.0,
-        };
+        }
+    }
+
+    /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
+    fn put_test_frame(trainer: &mut Trainer<'_>) {
+        let camera = test_camera();
         let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
         let pose = Pose {
             rotation,

@@ -299,7 +299,7 @@ pub struct Grayscale {}
 
 /// Gaussian noise on the labels written for training: a rotation about a random axis by an
 /// angle with standard deviation `rotation_deg`, and `translation_m` per axis.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LabelNoise {
     pub rotation_deg: f32,
