@@ -72,11 +72,17 @@ fn tiny_config() -> Config {
 /// Train `steps` steps of the tiny profile on lego with `threads` workers and return the
 /// checkpoint bytes.
 fn checkpoint_after(steps: u32, threads: usize, seed: u64) -> Option<Vec<u8>> {
-    let data = lego()?;
     let mut config = tiny_config();
     config.steps = steps;
     config.warmup_steps = 32.min(steps);
     config.seed = seed;
+    checkpoint_of_config(config, threads)
+}
+
+/// Train `config.steps` steps of `config` on 32 lego views and return the checkpoint bytes.
+fn checkpoint_of_config(config: Config, threads: usize) -> Option<Vec<u8>> {
+    let data = lego()?;
+    let steps = config.steps;
     let plan = MemoryPlan::new(&config);
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).unwrap();
@@ -107,6 +113,47 @@ fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
     assert!(a == one_thread, "1 thread and 2 threads differ");
     let other_seed = checkpoint_after(200, 2, 8).unwrap();
     assert!(a != other_seed, "the seed has no effect");
+}
+
+/// FNV-1a, 64 bits: a fixed, dependency-free fingerprint of checkpoint bytes.
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+/// Refactors and ports must not change a single bit of what training computes: the checkpoint
+/// bytes after a fixed run equal the ones recorded when this test was written. Two runs: the
+/// tiny profile (stochastic rounding, no embeddings), and the same with every method path on
+/// (f32 master copy, appearance embeddings, pose correction about the target, random
+/// backgrounds, foreground sampling).
+#[test]
+fn lego_checkpoint_bytes_equal_the_recorded_ones() {
+    let mut plain = tiny_config();
+    plain.steps = 60;
+    plain.warmup_steps = 16;
+    let mut method = plain;
+    method.texel_update = orbit_nerf_core::TexelUpdate::MasterCopy;
+    method.embedding_dim = 4;
+    method.pose_correction = true;
+    method.pose_pivot = orbit_nerf_core::PosePivot::TargetOrigin;
+    method.pose_warmup_steps = 20;
+    method.random_background = true;
+    method.foreground_fraction = 0.5;
+    for (name, config, recorded) in [
+        ("tiny", plain, 0x571d_e1fb_b5d5_5bb2),
+        ("tiny + method", method, 0xcb19_5d84_aedd_af42),
+    ] {
+        let Some(bytes) = checkpoint_of_config(config, 2) else {
+            return;
+        };
+        let hash = fnv1a(&bytes);
+        println!("{name}: {} bytes, fnv1a {hash:#018x}", bytes.len());
+        assert_eq!(
+            hash, recorded,
+            "{name}: checkpoint bytes changed ({hash:#018x})"
+        );
+    }
 }
 
 /// The `[bytes]` table and the cap of a budget file.
