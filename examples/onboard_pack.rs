@@ -36,8 +36,8 @@ fn run() -> Fallible<()> {
         )
         .into());
     }
-    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
-    let mut trainer = Trainer::new(config, &mut arena)?;
+    let mut arena = vec![0u8; MemoryPlan::render_only(&config).total];
+    let mut trainer = Trainer::new_render_only(config, &mut arena)?;
     let mut bytes = pack::MAGIC.to_vec();
     for name in pack::SECTIONS {
         let section = saved.section(name)?;

@@ -1,5 +1,5 @@
 //! The orbit-nerf core on an emulated Cortex-M4F (QEMU `mps2-an386`): restores a trained
-//! field from the render pack in flash, renders one view ([`pack::CAMERA`] at [`pack::pose`])
+//! field from the render pack in flash into a render-only arena, renders one view ([`pack::CAMERA`] at [`pack::pose`])
 //! and prints the image's fingerprint and the render time over semihosting, then exits QEMU.
 //! The host renders the same view from the same pack and prints its fingerprint
 //! (`examples/onboard_pack.rs`); scripts/onboard.sh compares the two.
@@ -18,10 +18,10 @@ use panic_semihosting as _;
 /// Written by the host (`cargo run --example onboard_pack`) before this crate is built.
 static PACK: &[u8] = include_bytes!("../pack/render.pack");
 
-const PLAN: MemoryPlan = MemoryPlan::new(&pack::CONFIG);
+const PLAN: MemoryPlan = MemoryPlan::render_only(&pack::CONFIG);
 const PIXELS: usize = pack::CAMERA.width as usize * pack::CAMERA.height as usize;
 
-/// The core's arena, sized at compile time from the memory plan (in .bss).
+/// The core's render-only arena, sized at compile time from its memory plan (in .bss).
 static mut ARENA: [u8; PLAN.total] = [0; PLAN.total];
 static mut IMAGE: [f32; PIXELS * 3] = [0.0; PIXELS * 3];
 
@@ -51,7 +51,8 @@ fn run() -> Result<(), &'static str> {
     let mut core = cortex_m::Peripherals::take().ok_or("peripherals taken twice")?;
     // SAFETY: `run` is called once, so these are the only references to the statics.
     let (arena, image) = unsafe { (&mut *addr_of_mut!(ARENA), &mut *addr_of_mut!(IMAGE)) };
-    let mut trainer = Trainer::new(pack::CONFIG, arena).map_err(|_| "config or arena refused")?;
+    let mut trainer =
+        Trainer::new_render_only(pack::CONFIG, arena).map_err(|_| "config or arena refused")?;
     let sections = pack::sections(PACK).ok_or("the flash holds no render pack")?;
     for (name, bytes) in pack::SECTIONS.iter().zip(sections) {
         trainer

@@ -15,11 +15,11 @@ pub const MAGIC: [u8; 8] = *b"ONRFPAK1";
 /// The checkpoint sections rendering reads: texels, MLP weights, occupancy bits.
 pub const SECTIONS: [&str; 3] = ["planes", "mlp", "occupancy_bits"];
 
-/// The tiny profile (budgets/tiny.toml, as trained by scripts/onboard/train.toml on lego)
-/// with the capacities of a renderer: one frame slot, one chunk, 256 rays per batch.
+/// The render profile, budgets/render.toml (tests/core_runtime.rs checks they are equal): the
+/// model scripts/onboard/train.toml trains, with the capacities of a renderer.
 pub const CONFIG: Config = Config {
     scales: 3,
-    resolutions: [16, 32, 64, 0],
+    resolutions: [8, 16, 32, 0],
     features: 8,
     density_hidden: 32,
     geo_features: 7,
@@ -42,10 +42,10 @@ pub const CONFIG: Config = Config {
     max_frames: 1,
     replacement: Replacement::Fifo,
     max_pixels_per_frame: 1,
-    rays_per_batch: 256,
+    rays_per_batch: 64,
     foreground_fraction: 0.0,
     chunks: 1,
-    samples_per_chunk: 8192,
+    samples_per_chunk: 1024,
     steps: 8,
     warmup_steps: 4,
     learning_rate: 0.01,
