@@ -44,7 +44,10 @@ fn main() -> ! {
         }
     };
     debug::exit(code);
-    loop {}
+    // Only reached if the debugger ignores the exit request.
+    loop {
+        cortex_m::asm::wfi();
+    }
 }
 
 fn run() -> Result<(), &'static str> {
