@@ -4,9 +4,9 @@
 use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{self, APPEARANCE, APPEARANCE_POSE, BASELINE, VariantResult};
 use orbit_nerf_host::dataset::{Dataset, split_every};
+use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::report::{self, ModelRow};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
-use orbit_nerf_host::speedplus::{self, LoadOptions};
 use orbit_nerf_host::train::to_rgb8;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -9,6 +9,7 @@ use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use orbit_nerf_core::{Config, Executor, MemoryPlan, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset};
+use orbit_nerf_host::formats;
 use orbit_nerf_host::train::{self, RayonExecutor, ViewScore};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -186,7 +187,7 @@ fn main() {
 const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
 
 fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
-    let dataset = dataset::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
+    let dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
     if dataset.frames.is_empty() {
         return Err(format!("{}: no frames", data.data.display()).into());
     }

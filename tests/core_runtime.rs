@@ -8,6 +8,7 @@ use orbit_nerf_core::{
     Camera, Config, Error, Ingested, MemoryPlan, Pose, Replacement, Sequential, Trainer,
 };
 use orbit_nerf_host::dataset::{self, Dataset};
+use orbit_nerf_host::formats;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -60,7 +61,7 @@ fn lego() -> Option<&'static Dataset> {
             eprintln!("skipping: {} not found", path.display());
             return None;
         }
-        Some(dataset::open(&path, Some(40), [1.0; 3]).expect("lego loads"))
+        Some(formats::open(&path, Some(40), [1.0; 3]).expect("lego loads"))
     })
     .as_ref()
 }

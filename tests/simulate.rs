@@ -12,8 +12,8 @@ mod simulate_command;
 use clap::Parser;
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::HostError;
+use orbit_nerf_host::formats::speedplus::{self, LoadOptions, SpeedPlusSet};
 use orbit_nerf_host::sim::{self, Scene, SimulationReport, Stage};
-use orbit_nerf_host::speedplus::{self, LoadOptions, SpeedPlusSet};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 

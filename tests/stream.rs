@@ -5,8 +5,8 @@
 
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::checkpoint;
+use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::sim::{self, Scene};
-use orbit_nerf_host::speedplus::{self, Label};
 use orbit_nerf_host::stream::{
     self, Control, DatasetSource, Event, FrameSource, Outcome, StreamSettings, StreamState,
     WatchOptions, WatchedFolder,
