@@ -195,6 +195,25 @@ impl JsonFile {
         Ok(Pose { rotation, center })
     }
 
+    /// The two fields every `transforms.json` frame has: `file_path` and `transform_matrix`
+    /// (as a pose, see [`JsonFile::pose`]), named `frames[index].key` in errors.
+    pub(crate) fn frame_file_and_pose(
+        &self,
+        frame: &Value,
+        index: usize,
+    ) -> Result<(String, Pose)> {
+        let path_field = format!("frames[{index}].file_path");
+        let name = self
+            .string(self.get(frame, "file_path", &path_field)?, &path_field)?
+            .to_owned();
+        let matrix_field = format!("frames[{index}].transform_matrix");
+        let pose = self.pose(
+            self.get(frame, "transform_matrix", &matrix_field)?,
+            &matrix_field,
+        )?;
+        Ok((name, pose))
+    }
+
     pub(crate) fn scene_box(&self, key: &str) -> Result<([f32; 3], [f32; 3])> {
         let corners = self.root[key]
             .as_array()

@@ -86,18 +86,10 @@ impl SyntheticReader {
         };
         let mut jobs = Vec::new();
         for (index, frame) in json.frames()?.iter().enumerate() {
-            let path_field = format!("frames[{index}].file_path");
-            let mut name = json
-                .string(json.get(frame, "file_path", &path_field)?, &path_field)?
-                .to_owned();
+            let (mut name, pose) = json.frame_file_and_pose(frame, index)?;
             if Path::new(&name).extension().is_none() {
                 name.push_str(".png");
             }
-            let matrix_field = format!("frames[{index}].transform_matrix");
-            let pose = json.pose(
-                json.get(frame, "transform_matrix", &matrix_field)?,
-                &matrix_field,
-            )?;
             jobs.push(FrameJob {
                 image: json.resolve(&name),
                 name,

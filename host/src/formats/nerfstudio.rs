@@ -81,21 +81,13 @@ pub fn load_nerfstudio(path: &Path, options: &LoadOptions) -> Result<Dataset> {
                 ));
             }
         }
-        let path_field = format!("frames[{index}].file_path");
-        let name = json
-            .string(json.get(frame, "file_path", &path_field)?, &path_field)?
-            .to_owned();
+        let (name, pose) = json.frame_file_and_pose(frame, index)?;
         let mask = match frame.get("mask_path") {
             Some(value) => {
                 Some(json.resolve(json.string(value, &format!("frames[{index}].mask_path"))?))
             }
             None => None,
         };
-        let matrix_field = format!("frames[{index}].transform_matrix");
-        let pose = json.pose(
-            json.get(frame, "transform_matrix", &matrix_field)?,
-            &matrix_field,
-        )?;
         jobs.push(FrameJob {
             image: json.resolve(&name),
             name,
