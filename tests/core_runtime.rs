@@ -2,6 +2,9 @@
 //! determinism across runs and thread counts, skipped non-finite steps, rejected bad input,
 //! and checkpoints.
 
+mod common;
+
+use common::root;
 use orbit_nerf_core::config::PART_ALIGN;
 use orbit_nerf_core::glam::{Mat3, Vec3};
 use orbit_nerf_core::{
@@ -12,7 +15,7 @@ use orbit_nerf_host::formats;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -45,10 +48,6 @@ unsafe impl GlobalAlloc for CountingAllocator {
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
 
 const LEGO: &str = "../shared/data/nerf_synthetic/lego";
 

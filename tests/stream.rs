@@ -3,6 +3,9 @@
 //! a watched folder ingests frames written while it trains, in order, and every kind of bad
 //! frame is reported once and skipped while the stream goes on.
 
+mod common;
+
+use common::{orbit_nerf, output_text, root, temp_dir};
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::checkpoint;
 use orbit_nerf_host::formats::speedplus::{self, Label};
@@ -17,26 +20,9 @@ use std::process::Command;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 /// The simulator's camera file comes from the shared data; without it these tests skip.
 fn have_shared_data() -> bool {
-    let present = root()
-        .join("../shared/data/speedplus/camera.json")
-        .is_file();
-    if !present {
-        eprintln!("skipping: ../shared/data not found");
-    }
-    present
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("orbit-nerf-stream-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::shared_data().is_some()
 }
 
 /// A simulated lightbox set of `frames` frames of 32 px.
@@ -188,20 +174,6 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     stream_api(&mut paced_source, 6, &paced, None, false, &mut |_| {});
     assert!(trainer_sections(&paced) == trainer_sections(&whole));
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-fn orbit_nerf(args: &[&str]) -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_orbit-nerf"));
-    command.args(args).current_dir(env!("CARGO_MANIFEST_DIR"));
-    command
-}
-
-fn output_text(out: &std::process::Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
 }
 
 #[test]
