@@ -116,14 +116,9 @@ fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     let _ = std::fs::remove_dir_all(&empty);
 }
 
-/// The simulator's presets need `../shared/data` (camera, landmarks).
-fn shared_data_present() -> bool {
-    common::shared_data().is_some()
-}
-
 #[test]
 fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
-    if !shared_data_present() {
+    if common::shared_data().is_none() {
         return;
     }
     let out = temp_dir("ablate");
@@ -154,7 +149,7 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
 
 #[test]
 fn pose_noise_sweeps_vary_one_kind_of_noise_each_and_share_the_noise_free_level() {
-    if !shared_data_present() {
+    if common::shared_data().is_none() {
         return;
     }
     let out = temp_dir("sweep");

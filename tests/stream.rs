@@ -20,11 +20,6 @@ use std::process::Command;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-/// The simulator's camera file comes from the shared data; without it these tests skip.
-fn have_shared_data() -> bool {
-    common::shared_data().is_some()
-}
-
 /// A simulated lightbox set of `frames` frames of 32 px.
 fn simulated_set(dir: &Path, frames: u32) {
     let mut scene = Scene::load("lightbox").unwrap();
@@ -134,7 +129,7 @@ fn deterministic_part(state: &StreamState) -> impl PartialEq + std::fmt::Debug {
 
 #[test]
 fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("resume");
@@ -178,7 +173,7 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
 
 #[test]
 fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("sigterm");
@@ -303,7 +298,7 @@ fn watch_options(grace_ms: u64) -> WatchOptions {
 
 #[test]
 fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("watch");
@@ -355,7 +350,7 @@ fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
 
 #[test]
 fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("bad");
