@@ -501,7 +501,13 @@ pub const fn activation_floats(c: &Config) -> usize {
 /// f32 values stored per sample: position (3), density, geometry features, colour (3),
 /// density gradient, colour gradient (3).
 pub const fn sample_floats(c: &Config) -> usize {
-    3 + 1 + c.geo_features as usize + RGB + 1 + RGB
+    forward_sample_floats(c) + 1 + RGB
+}
+
+/// f32 values per sample that rendering uses: position (3), density, geometry features,
+/// colour (3).
+pub const fn forward_sample_floats(c: &Config) -> usize {
+    3 + 1 + c.geo_features as usize + RGB
 }
 
 /// f32 values stored per ray of the batch: origin and direction (pose-corrected), target
@@ -510,7 +516,22 @@ pub const fn sample_floats(c: &Config) -> usize {
 pub const RAY_FLOATS: usize = 15;
 
 impl MemoryPlan {
+    /// Everything training needs.
     pub const fn new(c: &Config) -> MemoryPlan {
+        Self::plan(c, true)
+    }
+
+    /// Only what rendering reads and writes: the planes, the MLP weights, the occupancy bits,
+    /// the ray batch's rays and each chunk's forward buffers; no optimiser state, gradients,
+    /// frame store or running densities ([`crate::Trainer::new_render_only`]).
+    pub const fn render_only(c: &Config) -> MemoryPlan {
+        Self::plan(c, false)
+    }
+
+    /// `training`: the whole plan; otherwise the render-only one. Each part the render-only
+    /// plan leaves out is zero there (`t` below), so both come from one list.
+    const fn plan(c: &Config, training: bool) -> MemoryPlan {
+        let t = if training { 1 } else { 0 };
         let texels = c.texels();
         let params = c.plane_params();
         let chunks = c.chunks as usize;
@@ -524,28 +545,34 @@ impl MemoryPlan {
 
         let planes = align(params * 2);
         let plane_master = match c.texel_update {
-            TexelUpdate::MasterCopy => align(params * 4),
+            TexelUpdate::MasterCopy => t * align(params * 4),
             TexelUpdate::StochasticRounding => 0,
         };
-        let plane_moments = 2 * align(params * 4);
-        let plane_grads = chunks * (align(params * 4) + align(bitmap)) + align(bitmap);
-        let mlp_bytes = 3 * align(mlp * 4) + chunks * align(mlp * 4);
+        let plane_moments = t * 2 * align(params * 4);
+        let plane_grads = t * (chunks * (align(params * 4) + align(bitmap)) + align(bitmap));
+        let mlp_bytes = align(mlp * 4) + t * (2 * align(mlp * 4) + chunks * align(mlp * 4));
         let occupancy =
-            align(c.occupancy_cells().div_ceil(64) * 8) + align(c.occupancy_cells() * 4);
-        let frame_bytes = align(frames * c.max_pixels_per_frame as usize * 3)
-            + align(frames * c.max_pixels_per_frame as usize)
-            + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
-            + align(frames * 2)
-            + 3 * align(frames * frame_params * 4)
-            + chunks * align(frames * frame_params * 4);
-        let ray_batch = align(rays * RAY_FLOATS * 4) + align(rays * 4);
-        let per_chunk = align(samples * sample_floats(c) * 4)
+            align(c.occupancy_cells().div_ceil(64) * 8) + t * align(c.occupancy_cells() * 4);
+        let frame_bytes = t
+            * (align(frames * c.max_pixels_per_frame as usize * 3)
+                + align(frames * c.max_pixels_per_frame as usize)
+                + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
+                + align(frames * 2)
+                + 3 * align(frames * frame_params * 4)
+                + chunks * align(frames * frame_params * 4));
+        let ray_batch = align(rays * RAY_FLOATS * 4) + t * align(rays * 4);
+        let sample_block = if training {
+            sample_floats(c)
+        } else {
+            forward_sample_floats(c)
+        };
+        let per_chunk = align(samples * sample_block * 4)
             + align(samples * 4)
             + align((chunk_rays + 1) * 4)
-            + align(2 * LANES * activation_floats(c) * 4)
+            + align((1 + t) * LANES * activation_floats(c) * 4)
             + align(LANES * 3 * c.density_inputs() * 4)
-            + align(LANES * widest_layer(c) * 4)
-            + align(chunk_rays * 6 * 4);
+            + t * align(LANES * widest_layer(c) * 4)
+            + t * align(chunk_rays * 6 * 4);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes

@@ -44,6 +44,8 @@ pub enum Error {
         expected: usize,
         got: usize,
     },
+    /// A render-only trainer was asked to train, fit, refresh occupancy or take a frame.
+    RenderOnly,
     /// A checkpoint section is unknown or has the wrong size.
     BadSection {
         name: &'static str,
@@ -67,6 +69,7 @@ impl core::fmt::Display for Error {
                 )
             }
             Error::NoFrames => write!(f, "no frames to train on"),
+            Error::RenderOnly => write!(f, "this trainer was built render-only"),
             Error::BufferSize {
                 what,
                 expected,

@@ -23,6 +23,7 @@ impl<'a> Trainer<'a> {
         steps: u32,
         embedding: &mut [f32],
     ) -> Result<f32, Error> {
+        self.require_training()?;
         let c = self.config;
         let dim = c.embedding_dim as usize;
         if embedding.len() != dim {

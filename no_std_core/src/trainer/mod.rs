@@ -15,8 +15,8 @@
 use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
-    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats, sample_floats,
-    widest_layer,
+    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats,
+    forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
@@ -116,6 +116,8 @@ pub struct Trainer<'a> {
     chunks: heapless::Vec<Chunk<'a>, MAX_CHUNKS>,
     state: TrainState,
     used: MemoryPlan,
+    /// False for a render-only trainer ([`Trainer::new_render_only`]).
+    training: bool,
 }
 
 /// What the chunks are run for. It decides the appearance embedding they use, the counter
@@ -194,6 +196,15 @@ impl<'a> Trainer<'a> {
 
     pub fn mlp_parameters(&self) -> &[f32] {
         self.mlp
+    }
+
+    /// `Err(RenderOnly)` for a render-only trainer: the guard of every training operation.
+    fn require_training(&self) -> Result<(), Error> {
+        if self.training {
+            Ok(())
+        } else {
+            Err(Error::RenderOnly)
+        }
     }
 
     /// The read-only view of the model the chunks work with during `pass`.

@@ -13,6 +13,10 @@ impl<'a> Trainer<'a> {
     /// decayed maximum, and mark cells whose opacity over one marching step exceeds the
     /// threshold as occupied.
     pub fn refresh_occupancy<E: Executor>(&mut self, executor: &E) {
+        // A render-only trainer has no running densities to refresh.
+        if !self.training {
+            return;
+        }
         let c = self.config;
         let cells = c.occupancy_cells();
         let density = core::mem::take(&mut self.occupancy_density);

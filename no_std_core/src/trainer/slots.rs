@@ -35,6 +35,7 @@ impl<'a> Trainer<'a> {
         pixels: &[u8],
         mask: Option<&[u8]>,
     ) -> Result<(), Error> {
+        self.require_training()?;
         self.frames.set(slot, camera, pose, pixels, mask)?;
         let n = self.config.frame_params();
         let dim = self.config.embedding_dim as usize;
@@ -78,6 +79,7 @@ impl<'a> Trainer<'a> {
         pixels: &[u8],
         mask: Option<&[u8]>,
     ) -> Result<Ingested, Error> {
+        self.require_training()?;
         self.frames.check(&camera, &pose, pixels, mask)?;
         admission::check_exposure(pixels)?;
         let incoming = Descriptor::new(&self.config, &pose, mean_brightness(pixels));
