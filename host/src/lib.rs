@@ -5,6 +5,7 @@ pub mod checkpoint;
 pub mod dataset;
 pub mod error;
 pub mod io;
+pub mod memory;
 pub mod metrics;
 pub mod nerf_formats;
 pub mod report;
@@ -12,5 +13,6 @@ pub mod sim;
 pub mod speedplus;
 pub mod stream;
 pub mod train;
+pub mod values;
 
 pub use error::{HostError, Result};
