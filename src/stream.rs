@@ -14,7 +14,7 @@ use orbit_nerf_host::stream::{
 use orbit_nerf_host::train::{self, RayonExecutor};
 use orbit_nerf_host::{memory, values};
 use std::fmt::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -203,7 +203,7 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     let executor = RayonExecutor::new(args.threads)?;
     let plan = MemoryPlan::new(&config);
     memory::check_arena(
-        &checkpoint_path,
+        Path::new(&format!("the model for {}", source.info().name)),
         &plan,
         memory::limit_or_default(args.memory_limit),
     )?;

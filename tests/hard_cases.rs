@@ -465,3 +465,33 @@ fn sizes_that_cannot_fit_fail_with_the_memory_plan() {
         assert!(!out.exists(), "{case}: wrote output");
     }
 }
+
+/// A checkpoint whose parameters hold a NaN (saved with a valid CRC, as a diverged run would
+/// write it) is refused on restore, naming the file and the section, instead of stalling every
+/// later step of the resumed run.
+#[test]
+fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    use orbit_nerf_host::{checkpoint, train};
+    let scratch = Scratch::new("nan-checkpoint");
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.max_frames = 1;
+    config.max_pixels_per_frame = 64;
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let path = scratch.path("run.onrf");
+    train::save_checkpoint(&path, &Trainer::new(config, &mut arena).unwrap()).unwrap();
+    let mut saved = checkpoint::load(&path).unwrap();
+    let mlp = saved.sections.iter_mut().find(|s| s.name == "mlp").unwrap();
+    mlp.bytes[8..12].copy_from_slice(&f32::NAN.to_ne_bytes());
+    checkpoint::save(&path, &saved).unwrap();
+
+    let saved = checkpoint::load(&path).unwrap();
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let error = train::restore_checkpoint(&path, &saved, &mut trainer)
+        .unwrap_err()
+        .to_string();
+    for needle in ["run.onrf", "`mlp`", "non-finite value (element 2)"] {
+        assert!(error.contains(needle), "`{needle}` not in: {error}");
+    }
+}
