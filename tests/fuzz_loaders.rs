@@ -11,9 +11,12 @@
 use orbit_nerf_core::glam::{Quat, Vec3};
 use orbit_nerf_core::rng::Rng;
 use orbit_nerf_core::{MemoryPlan, Pose, Trainer};
-use orbit_nerf_host::nerf_formats::{self, LoadOptions};
+use orbit_nerf_host::formats::speedplus::{
+    self, FrameDecoder, Label, SpeedCamera, Truth, TruthFrame,
+};
+use orbit_nerf_host::formats::transforms::LoadOptions;
+use orbit_nerf_host::formats::{nerf_synthetic, nerfstudio};
 use orbit_nerf_host::sim::{self, Scene};
-use orbit_nerf_host::speedplus::{self, FrameDecoder, Label, SpeedCamera, Truth, TruthFrame};
 use orbit_nerf_host::{checkpoint, train};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
@@ -264,7 +267,7 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
         "transforms_train.json",
         &[synthetic_seed.into_bytes()],
         &file("transforms_train.json"),
-        &|p| nerf_formats::load_nerf_synthetic_transforms(p, &options).is_ok(),
+        &|p| nerf_synthetic::load_nerf_synthetic_transforms(p, &options).is_ok(),
     ));
     let nerfstudio_seed = format!(
         r#"{{"camera_model": "OPENCV", "aabb": [[-1, -1, -1], [1, 1, 1]], "fl_x": 10.0, "fl_y": 11.0, "cx": 4.0, "cy": 4.0, "w": 8, "h": 8, "k1": 0.01, "frames": [{{"file_path": "train/r_0.png", "transform_matrix": {}}}, {{"file_path": "train/r_1.png", "fl_x": 12.0, "transform_matrix": {}}}]}}"#,
@@ -275,7 +278,7 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
         "nerfstudio",
         &[nerfstudio_seed.into_bytes()],
         &file("transforms.json"),
-        &|p| nerf_formats::load_nerfstudio(p, &options).is_ok(),
+        &|p| nerfstudio::load_nerfstudio(p, &options).is_ok(),
     ));
 
     // A small model: the tiny profile with one scale and one frame slot.

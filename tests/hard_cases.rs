@@ -6,38 +6,23 @@
 //! Cases that need the reference data in `../shared/data` (presets, camera file) say so and
 //! pass without it. The README's "Hard cases" section lists every case with its command.
 
+mod common;
+
+use common::{orbit_nerf, output_text as text, root};
+use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::sim::{self, Scene};
-use orbit_nerf_host::speedplus::{self, Label};
 use orbit_nerf_host::stream::{Arrival, FrameSource, WatchOptions, WatchedFolder};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn have_shared_data() -> bool {
-    let present = root()
-        .join("../shared/data/speedplus/camera.json")
-        .is_file();
-    if !present {
-        eprintln!("skipping: reference data not found in ../shared/data");
-    }
-    present
-}
-
-/// A fresh folder for one case, removed when dropped.
+/// A fresh folder for one case, removed when dropped (also when the case fails).
 struct Scratch(PathBuf);
 
 impl Scratch {
     fn new(case: &str) -> Scratch {
-        let dir =
-            std::env::temp_dir().join(format!("orbit-nerf-hard-{case}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        Scratch(dir)
+        Scratch(common::temp_dir(case))
     }
 
     fn path(&self, name: &str) -> PathBuf {
@@ -49,20 +34,6 @@ impl Drop for Scratch {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
     }
-}
-
-fn orbit_nerf(args: &[&str]) -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_orbit-nerf"));
-    command.args(args).current_dir(root());
-    command
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
 }
 
 /// The run failed cleanly: a non-zero exit that is not a panic or a signal, no score printed,
@@ -152,7 +123,7 @@ fn out_of_range_flag_values_are_refused_naming_the_flag() {
 /// the stream. With no frame at all, the stream ends non-zero saying so and saves nothing.
 #[test]
 fn stream_idle_timeout_inf_waits_until_end_and_an_empty_stream_fails() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("idle-inf");
@@ -184,7 +155,7 @@ fn stream_idle_timeout_inf_waits_until_end_and_an_empty_stream_fails() {
 /// never prints a score or saves the untrained model.
 #[test]
 fn stream_with_only_black_frames_fails_without_a_score() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("black");
@@ -242,7 +213,7 @@ fn publish_frame(scratch: &Scratch, watched: &Path, label: &Label, stem: &str) {
 /// unpadded counter, a late arrival) is still ingested, and `img2` comes before `img10`.
 #[test]
 fn watched_folder_takes_late_frames_whose_names_sort_earlier() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("late");
@@ -274,7 +245,7 @@ fn watched_folder_takes_late_frames_whose_names_sort_earlier() {
 /// deletes nothing; over a plain simulated dataset it replaces it.
 #[test]
 fn simulate_over_a_dataset_with_other_folders_deletes_nothing() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("sim-out");
@@ -315,7 +286,7 @@ fn simulate_over_a_dataset_with_other_folders_deletes_nothing() {
 /// next run removes what the dead run left; a sibling with the user's files stays.
 #[test]
 fn a_killed_simulate_leaves_no_partial_dataset_behind() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("sim-kill");
@@ -381,7 +352,7 @@ fn simulate_with_a_camera_1e20_m_away_is_refused() {
 /// file fails before any work.
 #[test]
 fn stream_outputs_are_never_replaced_silently() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("stream-out");
@@ -429,7 +400,7 @@ fn stream_outputs_are_never_replaced_silently() {
 /// instead of aborting with `memory allocation failed`.
 #[test]
 fn sizes_that_cannot_fit_fail_with_the_memory_plan() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let scratch = Scratch::new("memory");
