@@ -396,6 +396,27 @@ fn stream_outputs_are_never_replaced_silently() {
     assert_eq!(std::fs::read(&file).unwrap(), b"mine");
 }
 
+/// `train --out` naming a file (or a folder below a file) fails before the dataset is read
+/// or a step is trained, and leaves the file alone.
+#[test]
+fn train_out_naming_a_file_fails_before_training() {
+    let scratch = Scratch::new("train-out");
+    let file = scratch.path("file");
+    std::fs::write(&file, b"mine").unwrap();
+    for out in [file.clone(), file.join("run")] {
+        let result = orbit_nerf(&["train", "--data", "no/such/dataset", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert_clear_error("train --out file", &result, &["is a file, not a folder"]);
+        assert!(
+            !text(&result).contains("no/such/dataset"),
+            "read the data first"
+        );
+    }
+    assert_eq!(std::fs::read(&file).unwrap(), b"mine");
+}
+
 /// Sizes that need tens of GB fail before anything is allocated, with the plan's numbers,
 /// instead of aborting with `memory allocation failed`.
 #[test]

@@ -508,11 +508,8 @@ pub fn resume<S: FrameSource + ?Sized>(
 /// Before a fresh stream: refuse to replace the checkpoint of an earlier stream at `path`
 /// unless `replace` (the user asked for it); continuing it is `resume`'s job.
 pub fn check_fresh_start(path: &Path, replace: bool) -> Result<()> {
-    if let Some(out) = path.parent().filter(|out| out.exists() && !out.is_dir()) {
-        return Err(HostError::invalid(
-            out,
-            "is a file, not a folder; the stream's outputs cannot be written into it",
-        ));
+    if let Some(out) = path.parent() {
+        crate::io::check_output_folder(out)?;
     }
     if path.exists() && !replace {
         return Err(HostError::invalid(
