@@ -125,15 +125,24 @@ impl PoseCorrection {
         }
     }
 
-    /// The vector part actually used (capped at unit length) and the scalar part.
+    /// The vector part actually used (capped at unit length) and the scalar part; the
+    /// identity for a non-finite `v` (an infinite component would give inf x 0 = NaN).
     fn quaternion(&self) -> (Vec3, f32) {
-        let n2 = self.v.length_squared();
-        if n2 > 1.0 {
-            (self.v * (1.0 / libm::sqrtf(n2)), 0.0)
-        } else if n2.is_finite() {
-            (self.v, libm::sqrtf(1.0 - n2))
+        if !self.v.is_finite() {
+            return (Vec3::ZERO, 1.0);
+        }
+        // Scaled down first, so that |v|² cannot overflow for a huge finite `v`.
+        let largest = self.v.abs().max_element();
+        let v = if largest > 1.0 {
+            self.v * (1.0 / largest)
         } else {
-            (Vec3::ZERO, 1.0)
+            self.v
+        };
+        let n2 = v.length_squared();
+        if n2 > 1.0 {
+            (v * (1.0 / libm::sqrtf(n2)), 0.0)
+        } else {
+            (v, libm::sqrtf(1.0 - n2))
         }
     }
 
@@ -208,6 +217,9 @@ mod tests {
             Vec3::new(1.0, 0.0, 0.0),
             Vec3::new(0.6, 0.8, 1e-4),
             Vec3::splat(3.0),
+            Vec3::new(1e30, -2e38, 0.0),
+            Vec3::new(f32::INFINITY, 0.0, 0.0),
+            Vec3::splat(f32::NEG_INFINITY),
             Vec3::splat(f32::NAN),
         ] {
             let pc = PoseCorrection { dt: Vec3::ZERO, v };

@@ -52,6 +52,9 @@ pub enum Error {
         expected: usize,
         got: usize,
     },
+    /// A checkpoint section holds a NaN or an infinity (at element `index`), which would
+    /// stall every step after the restore.
+    NonFiniteSection { name: &'static str, index: usize },
 }
 
 impl core::fmt::Display for Error {
@@ -85,6 +88,10 @@ impl core::fmt::Display for Error {
                     "checkpoint section `{name}` has {got} bytes, expected {expected}"
                 )
             }
+            Error::NonFiniteSection { name, index } => write!(
+                f,
+                "checkpoint section `{name}` holds a non-finite value (element {index})"
+            ),
         }
     }
 }

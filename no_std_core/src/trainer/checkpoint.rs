@@ -87,6 +87,9 @@ impl<'a> Trainer<'a> {
                 got: data.len(),
             });
         }
+        if let Some(index) = first_non_finite(name, data) {
+            return Err(Error::NonFiniteSection { name, index });
+        }
         if name == "frame_meta" {
             // Slot sizes index the pixel store: reject any that would not fit.
             let size = core::mem::size_of::<FrameMeta>();
@@ -112,5 +115,20 @@ impl<'a> Trainer<'a> {
             self.frames.rebuild_occupied();
         }
         Ok(())
+    }
+}
+
+/// The first non-finite element of a section of parameters, moments or densities (f16
+/// planes, f32 otherwise); `None` for finite data and for sections of other kinds.
+fn first_non_finite(name: &str, data: &[u8]) -> Option<usize> {
+    match name {
+        "planes" => data
+            .chunks_exact(2)
+            .position(|b| !f16::from_ne_bytes([b[0], b[1]]).is_finite()),
+        "plane_master" | "plane_m" | "plane_v" | "mlp" | "mlp_m" | "mlp_v"
+        | "occupancy_density" | "frame_params" | "frame_m" | "frame_v" => data
+            .chunks_exact(4)
+            .position(|b| !f32::from_ne_bytes([b[0], b[1], b[2], b[3]]).is_finite()),
+        _ => None,
     }
 }

@@ -57,6 +57,12 @@ impl<'a> Trainer<'a> {
             }
             *word = bits;
         }
+        // A grid with no occupied cell samples nothing, so nothing could ever learn again
+        // (all densities underflowed, or all equal to their mean): re-open every cell and
+        // let the next refresh cull from what training has learned by then.
+        if self.occupancy_bits.iter().all(|word| *word == 0) {
+            self.occupancy_bits.fill(u64::MAX);
+        }
         self.state.refreshes += 1;
     }
 }
