@@ -415,7 +415,7 @@ fn run_bench(args: &BenchArgs) -> CliResult {
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
     println!(
-        "model: {} scales {:?} x {} features, density MLP {}->{}->{}, colour MLP {}->{}->{}->3, SH degree {}, occupancy {}^3, {} rays/step",
+        "model: {} scales {:?} x {} features, density MLP {}->{}->{}, colour MLP {}->{}->{}->3, SH bands {}, occupancy {}^3, {} rays/step",
         config.scales,
         &config.resolutions[..config.scales as usize],
         config.features,
@@ -425,7 +425,7 @@ fn run_bench(args: &BenchArgs) -> CliResult {
         config.colour_inputs(),
         config.colour_hidden,
         config.colour_hidden,
-        config.sh_degree,
+        config.sh_bands,
         config.occupancy_res,
         config.rays_per_batch
     );

@@ -21,7 +21,7 @@ pub struct ConfigDef {
     pub density_hidden: u16,
     pub geo_features: u16,
     pub colour_hidden: u16,
-    pub sh_degree: u8,
+    pub sh_bands: u8,
     pub embedding_dim: u16,
     pub init_low: f32,
     pub init_high: f32,

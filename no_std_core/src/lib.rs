@@ -14,14 +14,14 @@ pub mod field;
 pub mod frames;
 pub mod optim;
 pub mod render;
+pub mod replacement;
 pub mod rng;
-pub mod stream;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
 pub use glam;
-pub use stream::Ingested;
+pub use replacement::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};
 
 /// Everything that can go wrong in the core; each names what was wrong.

@@ -15,7 +15,7 @@ fn small_config() -> Config {
     c.density_hidden = 16;
     c.geo_features = 7;
     c.colour_hidden = 16;
-    c.sh_degree = 3;
+    c.sh_bands = 3;
     c.embedding_dim = 4;
     c.pose_correction = true;
     c.occupancy_res = 8;
