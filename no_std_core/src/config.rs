@@ -19,6 +19,11 @@ pub const POSE_PARAMS: usize = 6;
 /// How small plane updates survive storage in f16.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum TexelUpdate {
     /// Keep an f32 master copy of every texel; the f16 plane is its rounding.
     MasterCopy,
@@ -30,6 +35,11 @@ pub enum TexelUpdate {
 /// Which frame a full store gives up when a frame streams in (`Trainer::ingest_frame`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum Replacement {
     /// Every frame is admitted and replaces the oldest one.
     Fifo,
@@ -47,6 +57,11 @@ pub enum Replacement {
 /// reachable), so it changes the conditioning, not the model.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum PosePivot {
     /// The learned translation is dt itself: turning the directions leaves the camera centre
     /// where it is.
@@ -61,8 +76,16 @@ pub enum PosePivot {
     TargetOrigin,
 }
 
+/// Everything that decides what the trainer computes. With the `serde` feature it reads from
+/// and writes to config files (every field named, no others) and checkpoints; checkpoints
+/// encode the fields by position, so their order is part of the checkpoint format.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(deny_unknown_fields)
+)]
 pub struct Config {
     // --- field ---
     /// Number of plane scales in use (1..=MAX_SCALES).
