@@ -88,6 +88,7 @@ fn load_texel<const F: usize>(planes: &[f16], texel: usize) -> [f32; F] {
         target_feature = "f16c",
         target_feature = "avx"
     ))]
+    #[allow(unsafe_code)] // The crate's one unsafe block: the f16c conversion intrinsics.
     {
         use core::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
         // F is a multiple of 8 (validated config). The conversion is exact, so this path

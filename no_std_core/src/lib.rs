@@ -3,7 +3,8 @@
 //! No heap, no panics on input, bit-identical results for the same config, frames and seed
 //! on every target. The host brings threads through [`Executor`]; the core never depends on
 //! which thread ran which chunk.
-#![cfg_attr(not(feature = "std"), no_std)]
+#![no_std]
+#![deny(unsafe_code)]
 // The kernels index several structure-of-arrays rows by the same lane or feature.
 #![allow(clippy::needless_range_loop)]
 
@@ -44,11 +45,20 @@ pub enum Error {
         expected: usize,
         got: usize,
     },
-    /// A checkpoint section is unknown or has the wrong size.
+    /// A checkpoint section has the wrong size.
     BadSection {
         name: &'static str,
         expected: usize,
         got: usize,
+    },
+    /// A checkpoint section name is not one of `Trainer::sections`.
+    UnknownSection,
+    /// A checkpoint's frame slot holds an invalid camera or a frame larger than a slot.
+    BadFrameSlot { slot: usize },
+    /// An arena part cannot hold values of this alignment (a part starts on `part_align`).
+    Misaligned {
+        part_align: usize,
+        type_align: usize,
     },
 }
 
@@ -82,9 +92,20 @@ impl core::fmt::Display for Error {
                     "checkpoint section `{name}` has {got} bytes, expected {expected}"
                 )
             }
+            Error::UnknownSection => write!(f, "checkpoint section is not one of the trainer's"),
+            Error::BadFrameSlot { slot } => write!(
+                f,
+                "checkpoint frame slot {slot} holds an invalid camera or a frame larger than a slot"
+            ),
+            Error::Misaligned {
+                part_align,
+                type_align,
+            } => write!(
+                f,
+                "arena parts start on {part_align} bytes, values need {type_align}"
+            ),
         }
     }
 }
 
-#[cfg(feature = "std")]
-impl std::error::Error for Error {}
+impl core::error::Error for Error {}
