@@ -323,7 +323,7 @@ fn bad_configs_name_the_field() {
         ("scales", |c| c.scales = 0),
         ("resolutions", |c| c.resolutions[1] = 1),
         ("features", |c| c.features = 12),
-        ("sh_degree", |c| c.sh_degree = 5),
+        ("sh_bands", |c| c.sh_bands = 5),
         ("aabb", |c| c.aabb_max[0] = f32::NAN),
         ("rays_per_batch", |c| c.rays_per_batch = 1023),
         ("chunks", |c| c.chunks = 0),

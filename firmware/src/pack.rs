@@ -24,7 +24,7 @@ pub const CONFIG: Config = Config {
     density_hidden: 32,
     geo_features: 7,
     colour_hidden: 32,
-    sh_degree: 3,
+    sh_bands: 3,
     embedding_dim: 0,
     init_low: 0.1,
     init_high: 0.5,

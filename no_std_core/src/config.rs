@@ -19,6 +19,11 @@ pub const POSE_PARAMS: usize = 6;
 /// How small plane updates survive storage in f16.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum TexelUpdate {
     /// Keep an f32 master copy of every texel; the f16 plane is its rounding.
     MasterCopy,
@@ -30,12 +35,17 @@ pub enum TexelUpdate {
 /// Which frame a full store gives up when a frame streams in (`Trainer::ingest_frame`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum Replacement {
     /// Every frame is admitted and replaces the oldest one.
     Fifo,
     /// Reservoir sampling weighted by novelty: a frame is admitted with probability
     /// `capacity / seen` scaled by how far it lies from the held frames (view direction and
-    /// brightness), and replaces the most redundant held frame (see `stream.rs`).
+    /// brightness), and replaces the most redundant held frame (see `replacement.rs`).
     Novelty,
     /// Every frame is admitted and replaces the most redundant held frame.
     Coverage,
@@ -47,6 +57,11 @@ pub enum Replacement {
 /// reachable), so it changes the conditioning, not the model.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum PosePivot {
     /// The learned translation is dt itself: turning the directions leaves the camera centre
     /// where it is.
@@ -61,8 +76,16 @@ pub enum PosePivot {
     TargetOrigin,
 }
 
+/// Everything that decides what the trainer computes. With the `serde` feature it reads from
+/// and writes to config files (every field named, no others) and checkpoints; checkpoints
+/// encode the fields by position, so their order is part of the checkpoint format.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(deny_unknown_fields)
+)]
 pub struct Config {
     // --- field ---
     /// Number of plane scales in use (1..=MAX_SCALES).
@@ -77,8 +100,9 @@ pub struct Config {
     pub geo_features: u16,
     /// Width of the colour MLP's two hidden layers.
     pub colour_hidden: u16,
-    /// Spherical-harmonics degree of the view encoding (1..=4, giving degree² values).
-    pub sh_degree: u8,
+    /// Spherical-harmonics bands of the view encoding (1..=4): `b` bands are the degrees
+    /// 0..b, giving b² values.
+    pub sh_bands: u8,
     /// Per-frame appearance embedding fed to the colour MLP (0 disables it).
     pub embedding_dim: u16,
     /// Planes start uniform in [init_low, init_high] (K-Planes: 0.1, 0.5).
@@ -177,7 +201,7 @@ impl Config {
         density_hidden: 64,
         geo_features: 15,
         colour_hidden: 64,
-        sh_degree: 4,
+        sh_bands: 4,
         embedding_dim: 0,
         init_low: 0.1,
         init_high: 0.5,
@@ -235,7 +259,7 @@ impl Config {
         1 + self.geo_features as usize
     }
     pub const fn sh_values(&self) -> usize {
-        self.sh_degree as usize * self.sh_degree as usize
+        self.sh_bands as usize * self.sh_bands as usize
     }
     pub const fn colour_inputs(&self) -> usize {
         self.sh_values() + self.geo_features as usize + self.embedding_dim as usize
@@ -292,8 +316,8 @@ impl Config {
         if !(1..=256).contains(&self.colour_hidden) {
             return bad("colour_hidden");
         }
-        if !(1..=4).contains(&self.sh_degree) {
-            return bad("sh_degree");
+        if !(1..=4).contains(&self.sh_bands) {
+            return bad("sh_bands");
         }
         if self.embedding_dim > 128 {
             return bad("embedding_dim");

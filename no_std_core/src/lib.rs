@@ -3,7 +3,8 @@
 //! No heap, no panics on input, bit-identical results for the same config, frames and seed
 //! on every target. The host brings threads through [`Executor`]; the core never depends on
 //! which thread ran which chunk.
-#![cfg_attr(not(feature = "std"), no_std)]
+#![no_std]
+#![deny(unsafe_code)]
 // The kernels index several structure-of-arrays rows by the same lane or feature.
 #![allow(clippy::needless_range_loop)]
 
@@ -14,14 +15,14 @@ pub mod field;
 pub mod frames;
 pub mod optim;
 pub mod render;
+pub mod replacement;
 pub mod rng;
-pub mod stream;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
 pub use glam;
-pub use stream::Ingested;
+pub use replacement::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};
 
 /// Everything that can go wrong in the core; each names what was wrong.
@@ -46,7 +47,7 @@ pub enum Error {
     },
     /// A render-only trainer was asked to train, fit, refresh occupancy or take a frame.
     RenderOnly,
-    /// A checkpoint section is unknown or has the wrong size.
+    /// A checkpoint section has the wrong size.
     BadSection {
         name: &'static str,
         expected: usize,
@@ -55,6 +56,15 @@ pub enum Error {
     /// A checkpoint section holds a NaN or an infinity (at element `index`), which would
     /// stall every step after the restore.
     NonFiniteSection { name: &'static str, index: usize },
+    /// A checkpoint section name is not one of `Trainer::sections`.
+    UnknownSection,
+    /// A checkpoint's frame slot holds an invalid camera or a frame larger than a slot.
+    BadFrameSlot { slot: usize },
+    /// An arena part cannot hold values of this alignment (a part starts on `part_align`).
+    Misaligned {
+        part_align: usize,
+        type_align: usize,
+    },
 }
 
 impl core::fmt::Display for Error {
@@ -92,9 +102,20 @@ impl core::fmt::Display for Error {
                 f,
                 "checkpoint section `{name}` holds a non-finite value (element {index})"
             ),
+            Error::UnknownSection => write!(f, "checkpoint section is not one of the trainer's"),
+            Error::BadFrameSlot { slot } => write!(
+                f,
+                "checkpoint frame slot {slot} holds an invalid camera or a frame larger than a slot"
+            ),
+            Error::Misaligned {
+                part_align,
+                type_align,
+            } => write!(
+                f,
+                "arena parts start on {part_align} bytes, values need {type_align}"
+            ),
         }
     }
 }
 
-#[cfg(feature = "std")]
-impl std::error::Error for Error {}
+impl core::error::Error for Error {}

@@ -127,7 +127,7 @@ pub fn store_texel(
             *texel = saturating_f16(*m);
         }
         None => {
-            let bits = rng::hash(seed, rng::stream::ROUNDING, step as u64, index as u64);
+            let bits = rng::hash(seed, rng::domain::ROUNDING, step as u64, index as u64);
             *texel = stochastic_round(texel.to_f32() + delta, bits);
         }
     }

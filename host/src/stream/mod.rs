@@ -346,7 +346,7 @@ fn check(trainer: &Trainer<'_>, frame: &Frame) -> Result<()> {
             &frame.pixels,
             frame.mask.as_deref(),
         )
-        .and_then(|()| orbit_nerf_core::stream::check_exposure(&frame.pixels))
+        .and_then(|()| orbit_nerf_core::replacement::check_exposure(&frame.pixels))
         .map_err(|e| core_error(&frame.name, e))
 }
 

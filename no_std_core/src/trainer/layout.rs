@@ -191,7 +191,7 @@ impl<'a> Trainer<'a> {
     /// uniform in ±sqrt(6 / fan_in) (He), zero biases; every occupancy cell occupied.
     fn initialise(&mut self) {
         let c = &self.config;
-        let mut rng = rng::Rng::new(rng::hash(c.seed, stream::INIT, 0, 0));
+        let mut rng = rng::Rng::new(rng::hash(c.seed, domain::INIT, 0, 0));
         for (i, t) in self.planes.iter_mut().enumerate() {
             let v = c.init_low + (c.init_high - c.init_low) * rng.uniform();
             *t = f16::from_f32(v);

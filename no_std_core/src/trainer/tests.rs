@@ -8,7 +8,7 @@ use glam::Mat3;
 /// A small field with embeddings and pose correction, one 8x8 frame seen from inside the
 /// box (so every ray starts at t = 0 and the sample lattice does not move with the pose;
 /// the gradient treats sample distances as fixed, which is exact here).
-fn small_config() -> Config {
+pub(super) fn small_config() -> Config {
     let mut c = Config::DEFAULT;
     c.scales = 2;
     c.resolutions = [8, 16, 0, 0];
@@ -16,7 +16,7 @@ fn small_config() -> Config {
     c.density_hidden = 16;
     c.geo_features = 7;
     c.colour_hidden = 16;
-    c.sh_degree = 3;
+    c.sh_bands = 3;
     c.embedding_dim = 4;
     c.pose_correction = true;
     c.occupancy_res = 8;
@@ -149,7 +149,7 @@ fn test_camera() -> Camera {
 }
 
 /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
-fn put_test_frame(trainer: &mut Trainer<'_>) {
+pub(super) fn put_test_frame(trainer: &mut Trainer<'_>) {
     let camera = test_camera();
     let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
     let pose = Pose {
