@@ -11,10 +11,10 @@
 mod arena;
 pub mod camera;
 pub mod config;
-pub mod field;
-pub mod frames;
-pub mod optim;
-pub mod render;
+pub(crate) mod field;
+pub(crate) mod frames;
+pub(crate) mod optim;
+pub(crate) mod render;
 pub mod replacement;
 pub mod rng;
 pub mod trainer;
