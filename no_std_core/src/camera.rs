@@ -6,11 +6,17 @@ use glam::{Mat3, Quat, Vec3};
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Camera {
+    /// Image width in pixels.
     pub width: u16,
+    /// Image height in pixels.
     pub height: u16,
+    /// Horizontal focal length in pixels.
     pub fx: f32,
+    /// Vertical focal length in pixels.
     pub fy: f32,
+    /// Principal point, x coordinate in pixels from the left image edge.
     pub cx: f32,
+    /// Principal point, y coordinate in pixels from the top image edge.
     pub cy: f32,
 }
 
@@ -25,6 +31,7 @@ impl Camera {
         )
     }
 
+    /// Number of pixels in the image, `width * height`.
     pub fn pixel_count(&self) -> usize {
         self.width as usize * self.height as usize
     }
@@ -45,7 +52,9 @@ impl Camera {
 /// Camera-to-world pose: `p_world = rotation * p_cam + center`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Pose {
+    /// Camera-to-world rotation; its columns are the camera's x, y, z axes in world axes.
     pub rotation: Mat3,
+    /// Camera centre in world coordinates.
     pub center: Vec3,
 }
 
@@ -63,6 +72,7 @@ impl defmt::Format for Pose {
 }
 
 impl Pose {
+    /// The camera at the world origin, looking along world +z.
     pub const IDENTITY: Pose = Pose {
         rotation: Mat3::IDENTITY,
         center: Vec3::ZERO,
@@ -106,7 +116,9 @@ impl Pose {
 /// gradients stay finite however far an update pushes `v`.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseCorrection {
+    /// Translation added to the ray origins, in world units.
     pub dt: Vec3,
+    /// Vector part of the rotation quaternion applied to the ray directions (`|v| <= 1`).
     pub v: Vec3,
 }
 

@@ -107,10 +107,13 @@ pub struct Config {
     pub embedding_dim: u16,
     /// Planes start uniform in [init_low, init_high] (K-Planes: 0.1, 0.5).
     pub init_low: f32,
+    /// Upper bound of the uniform plane initialisation.
     pub init_high: f32,
 
     // --- scene and rendering ---
+    /// Lowest corner of the scene box in world coordinates; rays are marched inside the box.
     pub aabb_min: [f32; 3],
+    /// Highest corner of the scene box in world coordinates (above `aabb_min` on every axis).
     pub aabb_max: [f32; 3],
     /// Colour behind the scene, composited where rays leave the box.
     pub background: [f32; 3],
@@ -138,6 +141,7 @@ pub struct Config {
     pub min_transmittance: f32,
 
     // --- capacities ---
+    /// Frame slots in the arena: the most frames held at once.
     pub max_frames: u16,
     /// What a full frame store does with a streamed-in frame.
     pub replacement: Replacement,
@@ -157,14 +161,21 @@ pub struct Config {
     pub samples_per_chunk: u32,
 
     // --- optimisation ---
+    /// Training steps of the learning-rate schedule (the cosine decay ends here).
     pub steps: u32,
+    /// Steps of linear learning-rate warmup before the cosine decay.
     pub warmup_steps: u32,
+    /// Peak learning rate of the field (planes and MLP), reached after the warmup.
     pub learning_rate: f32,
     /// The cosine schedule ends at learning_rate * final_lr_factor.
     pub final_lr_factor: f32,
+    /// Adam's decay of the first-moment (mean gradient) estimate, in [0, 1).
     pub adam_beta1: f32,
+    /// Adam's decay of the second-moment (squared gradient) estimate, in [0, 1).
     pub adam_beta2: f32,
+    /// Adam's denominator guard, added to the root of the second moment.
     pub adam_eps: f32,
+    /// How Adam updates reach the f16 plane texels.
     pub texel_update: TexelUpdate,
     /// Pose corrections learn at pose_lr_factor * the field's rate (the paper's beta <= 0.01).
     pub pose_lr_factor: f32,
@@ -175,6 +186,7 @@ pub struct Config {
     /// Pose corrections stay at zero for this many steps, until the field has formed (early
     /// gradients of a blurry field push poses anywhere).
     pub pose_warmup_steps: u32,
+    /// Seed of every random draw (initialisation, ray picks, jitter, rounding, admission).
     pub seed: u64,
 }
 
@@ -252,15 +264,19 @@ impl Config {
         ..Config::DEFAULT
     };
 
+    /// Inputs of the density MLP: the plane features of every scale.
     pub const fn density_inputs(&self) -> usize {
         self.scales as usize * self.features as usize
     }
+    /// Outputs of the density MLP: the density and the geometry features.
     pub const fn density_outputs(&self) -> usize {
         1 + self.geo_features as usize
     }
+    /// Spherical-harmonics values of the view encoding (`sh_bands²`).
     pub const fn sh_values(&self) -> usize {
         self.sh_bands as usize * self.sh_bands as usize
     }
+    /// Inputs of the colour MLP: SH values, geometry features and the appearance embedding.
     pub const fn colour_inputs(&self) -> usize {
         self.sh_values() + self.geo_features as usize + self.embedding_dim as usize
     }
@@ -275,12 +291,15 @@ impl Config {
         }
         n
     }
+    /// Learnable plane values: texels times features per texel.
     pub const fn plane_params(&self) -> usize {
         self.texels() * self.features as usize
     }
+    /// Rays of one chunk (`rays_per_batch / chunks`).
     pub const fn rays_per_chunk(&self) -> usize {
         self.rays_per_batch as usize / self.chunks as usize
     }
+    /// Cells of the occupancy grid (`occupancy_res³`).
     pub const fn occupancy_cells(&self) -> usize {
         let r = self.occupancy_res as usize;
         r * r * r
@@ -289,6 +308,7 @@ impl Config {
     pub const fn frame_params(&self) -> usize {
         self.embedding_dim as usize + POSE_PARAMS
     }
+    /// Where each MLP layer's weights and biases sit in the parameter vector.
     pub const fn mlp(&self) -> MlpLayout {
         MlpLayout::new(self)
     }
@@ -418,26 +438,38 @@ impl Config {
 /// Weights are stored input-major: `w[k * outputs + n]`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct MlpLayout {
+    /// The five layers in evaluation order, indexed by `DENSITY_HIDDEN` .. `COLOUR_OUT`.
     pub layers: [Layer; 5],
+    /// Length of the parameter vector (all weights and biases).
     pub total: usize,
 }
 
+/// One fully connected layer of an MLP: its shape and where its parameters start.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Layer {
+    /// Input width.
     pub inputs: usize,
+    /// Output width.
     pub outputs: usize,
+    /// Offset of the first of its `inputs * outputs` weights in the parameter vector.
     pub weights: usize,
+    /// Offset of the first of its `outputs` biases in the parameter vector.
     pub biases: usize,
 }
 
-/// Layer indices in `MlpLayout::layers`.
+/// Layer index in `MlpLayout::layers`: the density MLP's hidden layer.
 pub const DENSITY_HIDDEN: usize = 0;
+/// Layer index: the density MLP's output (density and geometry features).
 pub const DENSITY_OUT: usize = 1;
+/// Layer index: the colour MLP's first hidden layer.
 pub const COLOUR_HIDDEN1: usize = 2;
+/// Layer index: the colour MLP's second hidden layer.
 pub const COLOUR_HIDDEN2: usize = 3;
+/// Layer index: the colour MLP's output (RGB).
 pub const COLOUR_OUT: usize = 4;
 
 impl MlpLayout {
+    /// Lay out the five layers of `c`'s MLPs back to back, each as weights then biases.
     pub const fn new(c: &Config) -> MlpLayout {
         let dims = [
             (c.density_inputs(), c.density_hidden as usize),
@@ -493,6 +525,7 @@ pub struct MemoryPlan {
     pub ray_batch: usize,
     /// Per-chunk sample buffers, per-ray results and MLP activation scratch.
     pub samples: usize,
+    /// Sum of the aligned parts plus `PART_ALIGN` bytes of slack to align the buffer's start.
     pub total: usize,
 }
 

@@ -5,16 +5,17 @@
 //! which thread ran which chunk.
 #![no_std]
 #![deny(unsafe_code)]
+#![warn(missing_docs)]
 // The kernels index several structure-of-arrays rows by the same lane or feature.
 #![allow(clippy::needless_range_loop)]
 
 mod arena;
 pub mod camera;
 pub mod config;
-pub mod field;
-pub mod frames;
-pub mod optim;
-pub mod render;
+pub(crate) mod field;
+pub(crate) mod frames;
+pub(crate) mod optim;
+pub(crate) mod render;
 pub mod replacement;
 pub mod rng;
 pub mod trainer;
@@ -30,39 +31,71 @@ pub use trainer::{Executor, Sequential, StepReport, Trainer};
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Error {
     /// A config field is out of range.
-    InvalidConfig { field: &'static str },
+    InvalidConfig {
+        /// Name of the first bad field (or group, such as `aabb`).
+        field: &'static str,
+    },
     /// The arena is smaller than the memory plan.
-    ArenaTooSmall { needed: usize, got: usize },
+    ArenaTooSmall {
+        /// Bytes the plan needs (`MemoryPlan::total`).
+        needed: usize,
+        /// Bytes the caller gave.
+        got: usize,
+    },
     /// A frame was rejected; `field` names the bad part.
-    InvalidFrame { field: &'static str },
+    InvalidFrame {
+        /// The bad part: `camera`, `pixels`, `mask`, `pose`, `slot` or `columns`.
+        field: &'static str,
+    },
     /// A frame has more pixels than a slot holds.
-    FrameTooLarge { pixels: usize, capacity: usize },
+    FrameTooLarge {
+        /// Pixels of the frame.
+        pixels: usize,
+        /// Pixels a slot holds (`Config::max_pixels_per_frame`).
+        capacity: usize,
+    },
     /// Training needs at least one frame.
     NoFrames,
     /// A caller buffer has the wrong length.
     BufferSize {
+        /// Name of the buffer.
         what: &'static str,
+        /// Length it must have, in elements.
         expected: usize,
+        /// Length it has.
         got: usize,
     },
     /// A render-only trainer was asked to train, fit, refresh occupancy or take a frame.
     RenderOnly,
     /// A checkpoint section has the wrong size.
     BadSection {
+        /// Section name.
         name: &'static str,
+        /// Bytes the section has in this trainer.
         expected: usize,
+        /// Bytes given.
         got: usize,
     },
     /// A checkpoint section holds a NaN or an infinity (at element `index`), which would
     /// stall every step after the restore.
-    NonFiniteSection { name: &'static str, index: usize },
+    NonFiniteSection {
+        /// Section name.
+        name: &'static str,
+        /// Index of the first non-finite element.
+        index: usize,
+    },
     /// A checkpoint section name is not one of `Trainer::sections`.
     UnknownSection,
     /// A checkpoint's frame slot holds an invalid camera or a frame larger than a slot.
-    BadFrameSlot { slot: usize },
+    BadFrameSlot {
+        /// Index of the bad slot.
+        slot: usize,
+    },
     /// An arena part cannot hold values of this alignment (a part starts on `part_align`).
     Misaligned {
+        /// Alignment in bytes that every arena part starts on (`PART_ALIGN`).
         part_align: usize,
+        /// Alignment in bytes the value type needs.
         type_align: usize,
     },
 }

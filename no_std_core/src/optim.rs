@@ -22,9 +22,10 @@ pub fn learning_rate(c: &Config, step: u32) -> f32 {
 /// The per-step constants of Adam with bias correction folded into the step size.
 #[derive(Clone, Copy, Debug)]
 pub struct AdamStep {
+    /// Decay of the first-moment (mean) estimate, from `Config::adam_beta1`.
     pub beta1: f32,
+    /// Decay of the second-moment (squared gradient) estimate, from `Config::adam_beta2`.
     pub beta2: f32,
-    pub eps: f32,
     /// lr * sqrt(1 - beta2^t) / (1 - beta1^t)
     pub step_size: f32,
     /// eps * sqrt(1 - beta2^t), so the update equals the textbook one.
@@ -42,7 +43,6 @@ impl AdamStep {
         AdamStep {
             beta1: c.adam_beta1,
             beta2: c.adam_beta2,
-            eps: c.adam_eps,
             step_size: lr * root / (1.0 - b1t),
             eps_hat: c.adam_eps * root,
         }

@@ -32,7 +32,10 @@ use glam::Vec3;
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Ingested {
     /// Stored in `slot`, replacing whatever it held.
-    Stored { slot: usize },
+    Stored {
+        /// Index of the frame slot that now holds the frame.
+        slot: usize,
+    },
     /// The policy kept the held frames instead.
     Rejected,
 }
@@ -47,6 +50,7 @@ pub struct Descriptor {
 }
 
 impl Descriptor {
+    /// Describe a frame taken from `pose` with mean pixel value `brightness`.
     pub fn new(config: &Config, pose: &Pose, brightness: f32) -> Descriptor {
         let centre = 0.5 * (Vec3::from_array(config.aabb_min) + Vec3::from_array(config.aabb_max));
         let offset = pose.center - centre;

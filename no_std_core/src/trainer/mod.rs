@@ -47,6 +47,7 @@ use chunk::Chunk;
 /// Runs a closure over every item, possibly in parallel. Results must not depend on the
 /// order or the thread: the core gives each item its own buffers.
 pub trait Executor {
+    /// Call `f` once on every element of `items`, in any order and on any thread.
     fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F);
 }
 
@@ -65,6 +66,7 @@ impl Executor for Sequential {
 pub struct StepReport {
     /// Mean squared error per channel over the rays that were rendered.
     pub mse: f32,
+    /// Rays rendered and trained on (the batch less the dropped rays).
     pub rays: u32,
     /// Samples that reached the colour MLP and the backward pass (before the early stop).
     pub samples: u32,
@@ -172,6 +174,7 @@ struct Shared<'s> {
 }
 
 impl<'a> Trainer<'a> {
+    /// The config the trainer was built with.
     pub fn config(&self) -> &Config {
         &self.config
     }
@@ -182,18 +185,22 @@ impl<'a> Trainer<'a> {
         self.used
     }
 
+    /// Step, update, skip and refresh counters.
     pub fn state(&self) -> TrainState {
         self.state
     }
 
+    /// The frame slots: pixels, cameras, poses and which slots are occupied.
     pub fn frames(&self) -> &FrameStore<'a> {
         &self.frames
     }
 
+    /// The f16 texels of every plane, scale by scale.
     pub fn planes(&self) -> &[f16] {
         self.planes
     }
 
+    /// All MLP weights and biases, laid out as `Config::mlp`.
     pub fn mlp_parameters(&self) -> &[f32] {
         self.mlp
     }

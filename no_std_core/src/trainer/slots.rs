@@ -62,6 +62,7 @@ impl<'a> Trainer<'a> {
         Ok(())
     }
 
+    /// Empty frame slot `slot` (no-op if it is already empty or out of range).
     pub fn clear_frame(&mut self, slot: usize) {
         self.frames.clear(slot);
     }
