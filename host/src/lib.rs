@@ -8,6 +8,7 @@ pub mod io;
 pub mod metrics;
 pub mod nerf_formats;
 pub mod report;
+pub mod scene_box;
 pub mod sim;
 pub mod speedplus;
 pub mod stream;
