@@ -2,16 +2,20 @@
 //! determinism across runs and thread counts, skipped non-finite steps, rejected bad input,
 //! and checkpoints.
 
+mod common;
+
+use common::root;
 use orbit_nerf_core::config::PART_ALIGN;
 use orbit_nerf_core::glam::{Mat3, Vec3};
 use orbit_nerf_core::{
     Camera, Config, Error, Ingested, MemoryPlan, Pose, Replacement, Sequential, Trainer,
 };
 use orbit_nerf_host::dataset::{self, Dataset};
+use orbit_nerf_host::formats;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -45,10 +49,6 @@ unsafe impl GlobalAlloc for CountingAllocator {
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 const LEGO: &str = "../shared/data/nerf_synthetic/lego";
 
 /// Lego at 40 px, loaded once; `None` (and a message) when the shared data is absent.
@@ -60,7 +60,7 @@ fn lego() -> Option<&'static Dataset> {
             eprintln!("skipping: {} not found", path.display());
             return None;
         }
-        Some(dataset::open(&path, Some(40), [1.0; 3]).expect("lego loads"))
+        Some(formats::open(&path, Some(40), [1.0; 3]).expect("lego loads"))
     })
     .as_ref()
 }

@@ -2,22 +2,10 @@
 //! simulator) loads, trains and evaluates through the same commands, and `ablate` produces
 //! the paper's table for the three models.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn orbit_nerf(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_orbit-nerf"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("the binary runs");
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    (out.status.success(), text)
-}
+use common::{run_orbit_nerf as orbit_nerf, temp_dir};
+use std::path::Path;
 
 /// Scalar-first quaternion of a rotation by `angle` about a unit `axis`.
 fn quaternion(axis: [f64; 3], angle: f64) -> [f64; 4] {
@@ -71,13 +59,6 @@ fn write_speedplus_folder(root: &Path) {
         serde_json::Value::Array(labels).to_string(),
     )
     .unwrap();
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("orbit-nerf-method-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
 }
 
 #[test]
@@ -135,20 +116,9 @@ fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     let _ = std::fs::remove_dir_all(&empty);
 }
 
-/// The simulator's presets need `../shared/data` (camera, landmarks).
-fn shared_data_present() -> bool {
-    let present = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/speedplus/camera.json")
-        .is_file();
-    if !present {
-        eprintln!("skipping: ../shared/data not found");
-    }
-    present
-}
-
 #[test]
 fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
-    if !shared_data_present() {
+    if common::shared_data().is_none() {
         return;
     }
     let out = temp_dir("ablate");
@@ -179,7 +149,7 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
 
 #[test]
 fn pose_noise_sweeps_vary_one_kind_of_noise_each_and_share_the_noise_free_level() {
-    if !shared_data_present() {
+    if common::shared_data().is_none() {
         return;
     }
     let out = temp_dir("sweep");

@@ -5,42 +5,26 @@
 //! They need the reference data in `../shared/data` (camera and landmarks); without it each
 //! test says so and passes.
 
+mod common;
 // The CLI's `simulate` command, compiled into this test so its argument spelling is tested too.
-#[path = "../src/simulate.rs"]
+#[path = "../src/commands/simulate.rs"]
 mod simulate_command;
 
 use clap::Parser;
+use common::shared_data;
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::HostError;
+use orbit_nerf_host::formats::speedplus::{self, LoadOptions, SpeedPlusSet};
 use orbit_nerf_host::sim::{self, Scene, SimulationReport, Stage};
-use orbit_nerf_host::speedplus::{self, LoadOptions, SpeedPlusSet};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-
-fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn shared_data() -> Option<PathBuf> {
-    let dir = repo_root().join("../shared/data");
-    if dir.join("speedplus/camera.json").is_file() {
-        Some(dir)
-    } else {
-        eprintln!("skipping: reference data not found at {}", dir.display());
-        None
-    }
-}
 
 /// A folder under the system temp dir, removed when dropped.
 struct TempDir(PathBuf);
 
 impl TempDir {
     fn new(name: &str) -> TempDir {
-        let dir =
-            std::env::temp_dir().join(format!("orbit-nerf-simtest-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        TempDir(dir)
+        TempDir(common::temp_dir(name))
     }
 }
 
@@ -405,7 +389,7 @@ fn bad_scene_files_name_the_file_and_the_field() {
     if shared_data().is_none() {
         return;
     }
-    let base = std::fs::read_to_string(repo_root().join("scenes/synthetic.toml")).unwrap();
+    let base = std::fs::read_to_string(common::root().join("scenes/synthetic.toml")).unwrap();
     let dir = TempDir::new("bad");
     let cases: [(&str, String, &str); 6] = [
         (

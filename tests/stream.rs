@@ -3,10 +3,13 @@
 //! a watched folder ingests frames written while it trains, in order, and every kind of bad
 //! frame is reported once and skipped while the stream goes on.
 
+mod common;
+
+use common::{orbit_nerf, output_text, root, temp_dir};
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::checkpoint;
+use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::sim::{self, Scene};
-use orbit_nerf_host::speedplus::{self, Label};
 use orbit_nerf_host::stream::{
     self, Control, DatasetSource, Event, FrameSource, Outcome, StreamSettings, StreamState,
     WatchOptions, WatchedFolder,
@@ -16,28 +19,6 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-/// The simulator's camera file comes from the shared data; without it these tests skip.
-fn have_shared_data() -> bool {
-    let present = root()
-        .join("../shared/data/speedplus/camera.json")
-        .is_file();
-    if !present {
-        eprintln!("skipping: ../shared/data not found");
-    }
-    present
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("orbit-nerf-stream-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 /// A simulated lightbox set of `frames` frames of 32 px.
 fn simulated_set(dir: &Path, frames: u32) {
@@ -148,7 +129,7 @@ fn deterministic_part(state: &StreamState) -> impl PartialEq + std::fmt::Debug {
 
 #[test]
 fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("resume");
@@ -190,23 +171,9 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-fn orbit_nerf(args: &[&str]) -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_orbit-nerf"));
-    command.args(args).current_dir(env!("CARGO_MANIFEST_DIR"));
-    command
-}
-
-fn output_text(out: &std::process::Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
-
 #[test]
 fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("sigterm");
@@ -331,7 +298,7 @@ fn watch_options(grace_ms: u64) -> WatchOptions {
 
 #[test]
 fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("watch");
@@ -383,7 +350,7 @@ fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
 
 #[test]
 fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
-    if !have_shared_data() {
+    if common::shared_data().is_none() {
         return;
     }
     let dir = temp_dir("bad");

@@ -35,37 +35,3 @@ pub fn split_every(frame_count: usize, every: usize) -> (Vec<usize>, Vec<usize>)
     let every = every.max(1);
     (0..frame_count).partition(|i| i % every != 0)
 }
-
-/// Open a dataset folder (or label / transforms file) of any supported format:
-/// NeRF-synthetic (`transforms_train.json`), nerfstudio (`transforms.json`) or SPEED+/SHIRT
-/// (a label file with `camera.json`). `max_side` resizes the images (longer side in pixels).
-/// NeRF-synthetic images are composited on `background` (NeRF's convention is white).
-pub fn open(
-    path: &std::path::Path,
-    max_side: Option<u32>,
-    background: [f32; 3],
-) -> crate::Result<Dataset> {
-    use crate::nerf_formats::{self, LoadOptions, OutputSize, SyntheticSplit};
-    if !path.exists() {
-        return Err(crate::HostError::invalid(path, "no such file or folder"));
-    }
-    let size = max_side.map_or(OutputSize::Original, OutputSize::MaxSide);
-    let options = LoadOptions { size, background };
-    let is = |name: &str| path.join(name).is_file() || path.file_name().is_some_and(|n| n == name);
-    if is("transforms_train.json") {
-        let dir = if path.is_dir() {
-            path
-        } else {
-            path.parent().unwrap_or(path)
-        };
-        nerf_formats::load_nerf_synthetic(dir, SyntheticSplit::Train, &options)
-    } else if is("transforms.json") {
-        nerf_formats::load_nerfstudio(path, &options)
-    } else {
-        let options = crate::speedplus::LoadOptions {
-            width: max_side,
-            domain: None,
-        };
-        Ok(crate::speedplus::load(path, &options)?.dataset)
-    }
-}

@@ -4,13 +4,12 @@ pub mod ablation;
 pub mod checkpoint;
 pub mod dataset;
 pub mod error;
+pub mod formats;
 pub mod io;
 pub mod metrics;
-pub mod nerf_formats;
 pub mod report;
 pub mod scene_box;
 pub mod sim;
-pub mod speedplus;
 pub mod stream;
 pub mod train;
 

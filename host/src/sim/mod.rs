@@ -21,8 +21,8 @@ pub use target::{Target, read_landmarks};
 
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};
+use crate::formats::speedplus::{Label, SpeedCamera, Truth, TruthFrame, write_labels};
 use crate::io::write_png;
-use crate::speedplus::{Label, SpeedCamera, Truth, TruthFrame, write_labels};
 use rayon::prelude::*;
 pub use render::RenderedImage;
 use render::Renderer;

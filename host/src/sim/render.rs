@@ -9,7 +9,7 @@ use super::scene::{Effects, Flare, SensorNoise};
 use super::target::{Target, TraversalStack};
 use super::trajectory::{FrameView, Stream, frame_rng, gaussian};
 use super::{Stage, StageTimes};
-use crate::speedplus::SpeedCamera;
+use crate::formats::speedplus::SpeedCamera;
 use orbit_nerf_core::Camera;
 use orbit_nerf_core::glam::Vec3;
 

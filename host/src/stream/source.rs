@@ -14,9 +14,10 @@
 
 use crate::dataset::Frame;
 use crate::error::{HostError, Result};
-use crate::nerf_formats::{self, OutputSize, SyntheticReader, SyntheticSplit};
+use crate::formats::nerf_synthetic::{self, SyntheticReader, SyntheticSplit};
+use crate::formats::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
+use crate::formats::transforms::{self, OutputSize};
 use crate::sim::{FrameSimulator, Scene};
-use crate::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -106,15 +107,15 @@ impl DatasetSource {
         };
         let (reader, info) = match transforms {
             Some(json) => {
-                let options = nerf_formats::LoadOptions {
+                let options = transforms::LoadOptions {
                     size: width.map_or(OutputSize::Original, OutputSize::MaxSide),
                     background: SYNTHETIC_BACKGROUND,
                 };
                 let reader = SyntheticReader::open(&json, &options)?;
                 let info = SourceInfo {
                     name,
-                    scene_min: nerf_formats::NERF_SYNTHETIC_SCENE_MIN,
-                    scene_max: nerf_formats::NERF_SYNTHETIC_SCENE_MAX,
+                    scene_min: nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
+                    scene_max: nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
                     background: SYNTHETIC_BACKGROUND,
                     max_pixels: reader.output_pixels(),
                     frames: Some(reader.len() as u64),

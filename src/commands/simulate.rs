@@ -3,8 +3,8 @@
 //! write a contact sheet.
 
 use indicatif::{ProgressBar, ProgressStyle};
+use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::sim::{self, Scene};
-use orbit_nerf_host::speedplus::{self, LoadOptions};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]

@@ -1,12 +1,13 @@
 //! `orbit-nerf ablate`: the paper's ablation (baseline, + appearance, + appearance and pose
 //! correction on one scene) and its pose-noise sweep on the `synthetic` preset.
 
+use super::{FIT_STEPS, Fallible};
 use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{self, APPEARANCE, APPEARANCE_POSE, BASELINE, VariantResult};
 use orbit_nerf_host::dataset::{Dataset, split_every};
+use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::report::{self, ModelRow};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
-use orbit_nerf_host::speedplus::{self, LoadOptions};
 use orbit_nerf_host::train::to_rgb8;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -50,15 +51,13 @@ pub struct AblateArgs {
     #[arg(long, default_value_t = 8)]
     pub holdout: usize,
     /// Steps fitting each held-out view's embedding on its left half.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
     #[arg(long, default_value = "runs/ablate")]
     pub out: PathBuf,
 }
-
-type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 
 /// The paper's rotation sweep: rotation noise on the labels, in degrees (exact positions).
 const ROTATION_LEVELS_DEG: [f32; 5] = [0.0, 0.2, 0.4, 0.8, 1.6];

@@ -2,7 +2,8 @@
 //! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
-use indicatif::{ProgressBar, ProgressStyle};
+use super::{FIT_STEPS, Fallible, bar_style};
+use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::ablation::APPEARANCE_POSE;
 use orbit_nerf_host::report::ViewMetrics;
@@ -55,7 +56,7 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = 10)]
     pub checkpoint_every: u64,
     /// Steps fitting a held-out view's appearance embedding on its left half.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
     /// Pace a dataset folder at this many frames per second (does not change the result).
     #[arg(long)]
@@ -114,8 +115,6 @@ impl From<Policy> for Replacement {
         }
     }
 }
-
-type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 
 /// Raised by Ctrl-C / SIGTERM: the stream stops after the current frame and checkpoints.
 static STOP: AtomicBool = AtomicBool::new(false);
@@ -213,10 +212,9 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         Some(frames) => ProgressBar::new(frames),
         None => ProgressBar::no_length(),
     }
-    .with_style(
-        ProgressStyle::with_template("stream [{bar:30}] {pos}/{len} frames {per_sec} {msg}")?
-            .progress_chars("=> "),
-    );
+    .with_style(bar_style(
+        "stream [{bar:30}] {pos}/{len} frames {per_sec} {msg}",
+    )?);
     bar.set_position(state.position);
     let start = Instant::now();
     let control = Control {
@@ -304,10 +302,9 @@ fn offline(
     steps: u32,
     executor: &RayonExecutor,
 ) -> Fallible<(ViewMetrics, f64)> {
-    let bar = ProgressBar::new(steps as u64).with_style(
-        ProgressStyle::with_template("offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}")?
-            .progress_chars("=> "),
-    );
+    let bar = ProgressBar::new(steps as u64).with_style(bar_style(
+        "offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}",
+    )?);
     let start = Instant::now();
     let metrics =
         stream::offline_reference(source, state, config, steps, executor, &mut |_| bar.inc(1))?;

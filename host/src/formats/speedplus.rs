@@ -11,9 +11,10 @@
 //! Labels: `p_cam = R(q) p_body + r` with a scalar-first `q_vbs2tango[_true]` and
 //! `r_Vo2To_vbs[_true]` in metres. The world frame of the loaded dataset is the target body frame.
 
+use super::json::{JsonFile, write_json};
+use super::resample::{Distortion, Resampler};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
-use crate::io::write_atomic;
 use orbit_nerf_core::glam::{Quat, Vec3};
 use orbit_nerf_core::{Camera, Pose};
 use rayon::prelude::*;
@@ -74,20 +75,18 @@ impl Label {
 /// Read a SPEED+ label file (`q_vbs2tango_true` or `q_vbs2tango`, `r_Vo2To_vbs_true` or
 /// `r_Vo2To_vbs`). Rejects zero, non-unit and non-finite quaternions and non-finite positions.
 pub fn read_labels(path: &Path) -> Result<Vec<Label>> {
-    let value = read_json(path)?;
-    let entries = value
-        .as_array()
-        .ok_or_else(|| HostError::invalid(path, "expected a JSON list of labels"))?;
-    entries
+    let json = JsonFile::read_any(path)?;
+    label_entries(&json)?
         .iter()
         .enumerate()
-        .map(|(index, entry)| parse_label(path, &format!("[{index}]."), entry))
+        .map(|(index, entry)| parse_label(&json, &format!("[{index}]."), entry))
         .collect()
 }
 
 /// Read a file holding one SPEED+ label (a JSON object with the keys of a label file's entry).
 pub fn read_label(path: &Path) -> Result<Label> {
-    parse_label(path, "", &read_json(path)?)
+    let json = JsonFile::read_any(path)?;
+    parse_label(&json, "", &json.root)
 }
 
 /// Write labels as a SPEED+ label file.
@@ -95,8 +94,16 @@ pub fn write_labels(path: &Path, labels: &[Label]) -> Result<()> {
     write_json(path, labels)
 }
 
+/// The entries of a label file (a list).
+fn label_entries(json: &JsonFile) -> Result<&Vec<Value>> {
+    json.root
+        .as_array()
+        .ok_or_else(|| HostError::invalid(&json.path, "expected a JSON list of labels"))
+}
+
 /// Check one label entry; its fields are named `{prefix}{key}` in errors.
-fn parse_label(path: &Path, prefix: &str, entry: &Value) -> Result<Label> {
+fn parse_label(json: &JsonFile, prefix: &str, entry: &Value) -> Result<Label> {
+    let path = &json.path;
     let field = |name: &str| format!("{prefix}{name}");
     let filename = entry
         .get("filename")
@@ -104,7 +111,7 @@ fn parse_label(path: &Path, prefix: &str, entry: &Value) -> Result<Label> {
         .ok_or_else(|| HostError::field(path, field("filename"), "missing or not a string"))?;
     let (q_key, q_value) = first_key(entry, &["q_vbs2tango_true", "q_vbs2tango"])
         .ok_or_else(|| HostError::field(path, field("q_vbs2tango_true"), "missing"))?;
-    let q: [f64; 4] = number_array(path, &field(q_key), q_value)?;
+    let q: [f64; 4] = json.numbers_exact(q_value, &field(q_key))?;
     let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     if norm < 1e-9 {
         return Err(HostError::field(path, field(q_key), "zero quaternion"));
@@ -118,7 +125,7 @@ fn parse_label(path: &Path, prefix: &str, entry: &Value) -> Result<Label> {
     }
     let (r_key, r_value) = first_key(entry, &["r_Vo2To_vbs_true", "r_Vo2To_vbs"])
         .ok_or_else(|| HostError::field(path, field("r_Vo2To_vbs_true"), "missing"))?;
-    let r: [f64; 3] = number_array(path, &field(r_key), r_value)?;
+    let r: [f64; 3] = json.numbers_exact(r_value, &field(r_key))?;
     Ok(Label {
         filename: filename.to_owned(),
         q_vbs2tango: q,
@@ -129,44 +136,6 @@ fn parse_label(path: &Path, prefix: &str, entry: &Value) -> Result<Label> {
 fn first_key<'a>(entry: &'a Value, keys: &[&'static str]) -> Option<(&'static str, &'a Value)> {
     keys.iter()
         .find_map(|&key| entry.get(key).map(|value| (key, value)))
-}
-
-fn number_array<const N: usize>(path: &Path, field: &str, value: &Value) -> Result<[f64; N]> {
-    let items = value
-        .as_array()
-        .filter(|items| items.len() == N)
-        .ok_or_else(|| HostError::field(path, field, format!("expected a list of {N} numbers")))?;
-    let mut out = [0.0; N];
-    for (slot, item) in out.iter_mut().zip(items) {
-        *slot = item
-            .as_f64()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| HostError::field(path, field, format!("not a finite number: {item}")))?;
-    }
-    Ok(out)
-}
-
-fn number(path: &Path, object: &Value, key: &str) -> Result<f64> {
-    object
-        .get(key)
-        .and_then(Value::as_f64)
-        .filter(|v| v.is_finite())
-        .ok_or_else(|| HostError::field(path, key, "missing or not a finite number"))
-}
-
-/// Read a JSON file; `NaN` and `Infinity` literals (which Python writes) become strings, so
-/// the number check names the field that holds one.
-fn read_json(path: &Path) -> Result<Value> {
-    let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    serde_json::from_str(&crate::nerf_formats::quote_non_finite_literals(&text))
-        .map_err(|e| HostError::invalid(path, format!("malformed JSON: {e}")))
-}
-
-fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<()> {
-    let mut text = serde_json::to_string_pretty(value)
-        .map_err(|e| HostError::invalid(path, format!("cannot encode JSON: {e}")))?;
-    text.push('\n');
-    write_atomic(path, text.as_bytes())
 }
 
 /// The SPEED+ camera file (`camera.json`): sensor size, pixel pitch, focal lengths in metres,
@@ -194,7 +163,9 @@ pub struct SpeedCamera {
 impl SpeedCamera {
     /// Read and check a camera file; `distCoeffs` may be absent (no distortion).
     pub fn read(path: &Path) -> Result<SpeedCamera> {
-        let value = read_json(path)?;
+        let json = JsonFile::read(path)?;
+        let value = &json.root;
+        let number = |key: &str| json.number(json.get(value, key, key)?, key);
         let size = |key: &str| -> Result<u32> {
             value
                 .get(key)
@@ -211,22 +182,22 @@ impl SpeedCamera {
             .filter(|rows| rows.len() == 3)
             .ok_or_else(|| HostError::field(path, "cameraMatrix", "expected a 3x3 matrix"))?;
         let mut camera_matrix = [[0.0; 3]; 3];
-        for (out, row) in camera_matrix.iter_mut().zip(rows) {
-            *out = number_array(path, "cameraMatrix", row)?;
+        for (r, (out, row)) in camera_matrix.iter_mut().zip(rows).enumerate() {
+            *out = json.numbers_exact(row, &format!("cameraMatrix[{r}]"))?;
         }
         let dist_coeffs = match value.get("distCoeffs") {
-            Some(coeffs) => number_array(path, "distCoeffs", coeffs)?,
+            Some(coeffs) => json.numbers_exact(coeffs, "distCoeffs")?,
             None => [0.0; 5],
         };
         let camera = SpeedCamera {
             width: size("Nu")?,
             height: size("Nv")?,
-            ppx: number(path, &value, "ppx")?,
-            ppy: number(path, &value, "ppy")?,
-            fx: number(path, &value, "fx")?,
-            fy: number(path, &value, "fy")?,
-            ccx: number(path, &value, "ccx")?,
-            ccy: number(path, &value, "ccy")?,
+            ppx: number("ppx")?,
+            ppy: number("ppy")?,
+            fx: number("fx")?,
+            fy: number("fy")?,
+            ccx: number("ccx")?,
+            ccy: number("ccy")?,
             camera_matrix,
             dist_coeffs,
         };
@@ -261,30 +232,24 @@ impl SpeedCamera {
         self.dist_coeffs.iter().any(|&c| c != 0.0)
     }
 
+    /// The lens distortion, `None` when every coefficient is zero.
+    pub fn distortion(&self) -> Option<Distortion> {
+        self.has_distortion().then(|| self.lens())
+    }
+
     /// Apply the OpenCV distortion to normalised image coordinates `(x, y)` (z = 1).
     pub fn distort(&self, x: f32, y: f32) -> (f32, f32) {
-        let [k1, k2, p1, p2, k3] = self.dist_coeffs.map(|c| c as f32);
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        (
-            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-        )
+        self.lens().apply(x, y)
+    }
+
+    /// The distortion coefficients as used (f32), zero or not.
+    fn lens(&self) -> Distortion {
+        Distortion(self.dist_coeffs.map(|c| c as f32))
     }
 
     /// Invert [`SpeedCamera::distort`] by fixed-point iteration (as OpenCV's `undistortPoints`).
     pub fn undistort(&self, xd: f32, yd: f32) -> (f32, f32) {
-        let [k1, k2, p1, p2, k3] = self.dist_coeffs.map(|c| c as f32);
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            x = (xd - dx) / radial;
-            y = (yd - dy) / radial;
-        }
-        (x, y)
+        self.lens().invert(xd, yd)
     }
 }
 
@@ -400,7 +365,7 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
 /// camera and truth are read when it opens, a frame's label is checked and its image decoded
 /// only when that frame is asked for (streaming never holds the whole set).
 pub struct SpeedPlusReader {
-    entries: Vec<Value>,
+    labels: JsonFile,
     pub truth: Option<Truth>,
     pub label_file: PathBuf,
     images_dir: PathBuf,
@@ -419,12 +384,8 @@ impl SpeedPlusReader {
             )
         })?;
         let camera = SpeedCamera::read(&camera_file)?;
-        let Value::Array(entries) = read_json(&label_file)? else {
-            return Err(HostError::invalid(
-                &label_file,
-                "expected a JSON list of labels",
-            ));
-        };
+        let labels = JsonFile::read_any(&label_file)?;
+        label_entries(&labels)?;
         let images_dir = find_images_dir(&label_dir, options)?;
         let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
         let truth_file = label_dir.join("truth.json");
@@ -434,7 +395,7 @@ impl SpeedPlusReader {
             None
         };
         Ok(SpeedPlusReader {
-            entries,
+            labels,
             truth,
             decoder: FrameDecoder::new(camera, options.width),
             label_file,
@@ -445,11 +406,16 @@ impl SpeedPlusReader {
 
     /// Frames (label entries) in the set.
     pub fn len(&self) -> usize {
-        self.entries.len()
+        self.entries().len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.entries.is_empty()
+        self.entries().is_empty()
+    }
+
+    /// The label entries (checked to be a list when the reader opened).
+    fn entries(&self) -> &[Value] {
+        self.labels.root.as_array().map_or(&[], Vec::as_slice)
     }
 
     /// The scene box: the target's from `truth.json`, else TANGO's.
@@ -462,10 +428,10 @@ impl SpeedPlusReader {
 
     /// The checked label of frame `index`.
     pub fn label(&self, index: usize) -> Result<Label> {
-        let entry = self.entries.get(index).ok_or_else(|| {
+        let entry = self.entries().get(index).ok_or_else(|| {
             HostError::invalid(&self.label_file, format!("no label number {index}"))
         })?;
-        parse_label(&self.label_file, &format!("[{index}]."), entry)
+        parse_label(&self.labels, &format!("[{index}]."), entry)
     }
 
     /// Frame `index`: label checked, image (and mask) decoded and resampled.
@@ -504,7 +470,7 @@ impl FrameDecoder {
     /// `width`: the output width (the height keeps the aspect ratio); `None` keeps the size.
     pub fn new(camera: SpeedCamera, width: Option<u32>) -> FrameDecoder {
         FrameDecoder {
-            resampler: Resampler::new(&camera, width),
+            resampler: Resampler::new(camera.pinhole(), camera.distortion(), width),
             camera,
         }
     }
@@ -644,139 +610,6 @@ fn read_image(path: &Path, camera: &SpeedCamera) -> Result<image::DynamicImage> 
     }
     Ok(image)
 }
-
-/// Maps stored images (possibly distorted, any size) to pinhole images of the requested size.
-struct Resampler {
-    source: SpeedCamera,
-    source_pinhole: Camera,
-    output: Camera,
-    /// Sub-samples per output pixel along each axis (area averaging when downsizing).
-    subsamples: u32,
-}
-
-impl Resampler {
-    fn new(source: &SpeedCamera, width: Option<u32>) -> Resampler {
-        let source_pinhole = source.pinhole();
-        let out_width = width.unwrap_or(source.width).clamp(1, u16::MAX as u32);
-        let scale_x = out_width as f32 / source.width as f32;
-        let out_height =
-            ((source.height as f32 * scale_x).round() as u32).clamp(1, u16::MAX as u32);
-        let scale_y = out_height as f32 / source.height as f32;
-        let output = Camera {
-            width: out_width as u16,
-            height: out_height as u16,
-            fx: source_pinhole.fx * scale_x,
-            fy: source_pinhole.fy * scale_y,
-            cx: source_pinhole.cx * scale_x,
-            cy: source_pinhole.cy * scale_y,
-        };
-        let subsamples = (1.0 / scale_x.min(scale_y)).ceil().clamp(1.0, 16.0) as u32;
-        Resampler {
-            source: source.clone(),
-            source_pinhole,
-            output,
-            subsamples,
-        }
-    }
-
-    fn is_identity(&self) -> bool {
-        self.output == self.source_pinhole && !self.source.has_distortion()
-    }
-
-    fn rgb(&self, path: &Path, image: &image::RgbImage) -> Result<Vec<u8>> {
-        if self.is_identity() {
-            return Ok(image.as_raw().clone());
-        }
-        self.resample(path, image.as_raw(), 3)
-    }
-
-    /// Masks are resampled like images and thresholded back to 0 / 255.
-    fn mask(&self, path: &Path, image: &image::GrayImage) -> Result<Vec<u8>> {
-        if self.is_identity() {
-            return Ok(image.as_raw().clone());
-        }
-        let mut mask = self.resample(path, image.as_raw(), 1)?;
-        mask.iter_mut()
-            .for_each(|v| *v = if *v >= 128 { 255 } else { 0 });
-        Ok(mask)
-    }
-
-    fn resample(&self, path: &Path, source: &[u8], channels: usize) -> Result<Vec<u8>> {
-        let (sw, sh) = (self.source.width as usize, self.source.height as usize);
-        if source.len() != sw * sh * channels {
-            return Err(HostError::invalid(
-                path,
-                "pixel buffer does not match the image size",
-            ));
-        }
-        let out = &self.output;
-        let src = &self.source_pinhole;
-        let n = self.subsamples;
-        let weight = 1.0 / (n * n) as f32;
-        let mut pixels = vec![0u8; out.pixel_count() * channels];
-        for (index, pixel) in pixels.chunks_exact_mut(channels).enumerate() {
-            let (i, j) = (
-                (index % out.width as usize) as f32,
-                (index / out.width as usize) as f32,
-            );
-            let mut sum = [0.0f32; 3];
-            for sy in 0..n {
-                for sx in 0..n {
-                    let u = i + (sx as f32 + 0.5) / n as f32;
-                    let v = j + (sy as f32 + 0.5) / n as f32;
-                    let (x, y) = self
-                        .source
-                        .distort((u - out.cx) / out.fx, (v - out.cy) / out.fy);
-                    let value = bilinear(
-                        source,
-                        sw,
-                        sh,
-                        channels,
-                        src.fx * x + src.cx - 0.5,
-                        src.fy * y + src.cy - 0.5,
-                    );
-                    for c in 0..channels {
-                        sum[c] += value[c];
-                    }
-                }
-            }
-            for c in 0..channels {
-                pixel[c] = (sum[c] * weight).round().clamp(0.0, 255.0) as u8;
-            }
-        }
-        Ok(pixels)
-    }
-}
-
-/// Bilinear sample at continuous pixel-index coordinates (pixel `i` covers `[i - 0.5, i + 0.5]`);
-/// points off the image are black, points on it near the border repeat the edge pixels.
-fn bilinear(
-    source: &[u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    x: f32,
-    y: f32,
-) -> [f32; 3] {
-    let mut out = [0.0; 3];
-    if !(x >= -0.5 && y >= -0.5 && x <= width as f32 - 0.5 && y <= height as f32 - 0.5) {
-        return out;
-    }
-    let (x0, y0) = (x.floor(), y.floor());
-    let (fx, fy) = (x - x0, y - y0);
-    for (dy, wy) in [(0, 1.0 - fy), (1, fy)] {
-        for (dx, wx) in [(0, 1.0 - fx), (1, fx)] {
-            let px = (x0 as i64 + dx).clamp(0, width as i64 - 1) as usize;
-            let py = (y0 as i64 + dy).clamp(0, height as i64 - 1) as usize;
-            let base = (py * width + px) * channels;
-            for c in 0..channels {
-                out[c] += wx * wy * source[base + c] as f32;
-            }
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,31 @@
+//! Scoring and reporting for the paper's evaluation and ablations: per-view image metrics
+//! (PSNR, SSIM, JNB on the right half and on the whole image), pose errors, markdown tables,
+//! labelled comparison strips and line plots.
+//!
+//! Evaluation follows the paper (and K-Planes / NeRF-W): for a held-out view the appearance
+//! embedding is fitted on the left half of the reference image, so the right half is the fair
+//! score; the whole image is reported too because that is what the paper's figures show.
+//!
+//! Pictures carry their own text: a 5x7 bitmap font built into this module draws captions,
+//! tick labels and legends, so no system font (absent on CI machines) is ever needed.
+//! `plotters` draws the plot geometry (grid, frame, ticks, series) with its bitmap backend only.
+
+mod canvas;
+mod plot;
+mod poses;
+mod strip;
+mod tables;
+mod views;
+
+pub use plot::line_plot;
+pub use poses::{
+    PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,
+};
+pub use strip::side_by_side;
+pub use tables::{ModelRow, ablation_table, markdown_table, pose_error_table};
+pub use views::{ViewMetrics, mean_metrics, score_view};
+
+/// Arithmetic mean; NaN for an empty slice.
+fn mean(values: &[f64]) -> f64 {
+    values.iter().sum::<f64>() / values.len() as f64
+}

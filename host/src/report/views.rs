@@ -1,0 +1,291 @@
+//! Image metrics of one view: PSNR, SSIM and JNB on the right half and on the whole image.
+
+use super::mean;
+use crate::error::Result;
+use crate::metrics::{self, ImageRef, JnbVariant, MetricError};
+
+/// Image quality of one rendered view against its reference, on the right half
+/// (`x >= width / 2`, the pixels the appearance embedding was not fitted on) and on the whole
+/// image.
+///
+/// - PSNR in dB on 8-bit values; `f64::INFINITY` when the quantised render equals the reference
+///   (as scikit-image reports it; nothing is capped).
+/// - SSIM as [`metrics::ssim`] (mean over the three channels).
+/// - JNB is [`metrics::JnbScore::blur`] with [`JnbVariant::Paper`], lower is sharper, measured
+///   on the render alone (it is a no-reference metric). `f64::NAN` when the region has no edge
+///   block to measure: a blank render, or a region narrower or shorter than one 64x64 block.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewMetrics {
+    pub psnr_right: f64,
+    pub ssim_right: f64,
+    pub jnb_right: f64,
+    pub psnr_full: f64,
+    pub ssim_full: f64,
+    pub jnb_full: f64,
+}
+
+/// Score a render (RGB `f32` in [0, 1], row-major, `width * height * 3` values) against the
+/// reference image (RGB8, same layout).
+///
+/// The render is quantised to 8 bits first (round half up, values outside [0, 1] clamped, NaN
+/// taken as 0): the reference is 8-bit, and NeRF evaluations score renders as saved 8-bit
+/// images. JNB reads the Rec.601 luma (`0.299 R + 0.587 G + 0.114 B`) of the quantised render,
+/// itself rounded to 8 bits, as an image library's 8-bit gray conversion gives it to the
+/// reference JNB code.
+///
+/// Errors when a buffer does not match `width x height x 3`, or when a region is smaller than
+/// SSIM's 11x11 window.
+pub fn score_view(
+    render: &[f32],
+    truth: &[u8],
+    width: usize,
+    height: usize,
+) -> Result<ViewMetrics, MetricError> {
+    let rendered = quantize(render);
+    let rendered_image = ImageRef::new(&rendered, width, height, 3)?;
+    let truth_image = ImageRef::new(truth, width, height, 3)?;
+    let luma = rec601_luma(&rendered);
+    let luma_image = ImageRef::new(&luma, width, height, 1)?;
+
+    let left = width / 2;
+    let right_width = width - left;
+    let rendered_right = rendered_image.region(left, 0, right_width, height)?;
+    let truth_right = truth_image.region(left, 0, right_width, height)?;
+    let luma_right = luma_image.region(left, 0, right_width, height)?;
+
+    Ok(ViewMetrics {
+        psnr_right: metrics::psnr(&rendered_right, &truth_right)?,
+        ssim_right: metrics::ssim(&rendered_right, &truth_right)?,
+        jnb_right: jnb_blur(&luma_right)?,
+        psnr_full: metrics::psnr(&rendered_image, &truth_image)?,
+        ssim_full: metrics::ssim(&rendered_image, &truth_image)?,
+        jnb_full: jnb_blur(&luma_image)?,
+    })
+}
+
+/// Mean over views. PSNR and SSIM are plain means (an infinite PSNR makes the mean infinite,
+/// which is the honest summary of a perfect view). JNB ignores NaN entries (views with no edge
+/// block) and is NaN only when every view is. No views gives NaN everywhere.
+pub fn mean_metrics(views: &[ViewMetrics]) -> ViewMetrics {
+    let field_mean =
+        |field: fn(&ViewMetrics) -> f64| mean(&views.iter().map(field).collect::<Vec<f64>>());
+    let field_mean_ignoring_nan = |field: fn(&ViewMetrics) -> f64| {
+        mean(
+            &views
+                .iter()
+                .map(field)
+                .filter(|v| !v.is_nan())
+                .collect::<Vec<f64>>(),
+        )
+    };
+    ViewMetrics {
+        psnr_right: field_mean(|v| v.psnr_right),
+        ssim_right: field_mean(|v| v.ssim_right),
+        jnb_right: field_mean_ignoring_nan(|v| v.jnb_right),
+        psnr_full: field_mean(|v| v.psnr_full),
+        ssim_full: field_mean(|v| v.ssim_full),
+        jnb_full: field_mean_ignoring_nan(|v| v.jnb_full),
+    }
+}
+
+/// `[0, 1]` floats to bytes: `floor(v * 255 + 0.5)` clamped to 0..=255. The `as u8` cast maps
+/// NaN to 0.
+fn quantize(values: &[f32]) -> Vec<u8> {
+    values
+        .iter()
+        .map(|&v| (v * 255.0 + 0.5).floor().clamp(0.0, 255.0) as u8)
+        .collect()
+}
+
+/// Rec.601 luma of packed RGB8, rounded half up to 8 bits.
+fn rec601_luma(rgb: &[u8]) -> Vec<u8> {
+    rgb.chunks_exact(3)
+        .map(|p| {
+            let luma = 0.299 * p[0] as f64 + 0.587 * p[1] as f64 + 0.114 * p[2] as f64;
+            (luma + 0.5).floor().min(255.0) as u8
+        })
+        .collect()
+}
+
+/// JNB blur of a gray image, NaN when there is no edge block to measure.
+fn jnb_blur(gray: &ImageRef<u8>) -> Result<f64, MetricError> {
+    let score = metrics::jnb(gray, JnbVariant::Paper)?;
+    Ok(if score.edge_blocks == 0 {
+        f64::NAN
+    } else {
+        score.blur
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::{Path, PathBuf};
+
+    /// An RGB8 test scene with a disc, concentric rings and stripes (hard edges for JNB) on a
+    /// dark field.
+    fn scene(width: usize, height: usize) -> Vec<u8> {
+        let (w, h) = (width as f64, height as f64);
+        let mut pixels = Vec::with_capacity(width * height * 3);
+        for y in 0..height {
+            for x in 0..width {
+                let (fx, fy) = (x as f64, y as f64);
+                let disc = (fx - 0.3 * w).hypot(fy - 0.5 * h) < 0.2 * h;
+                let ring_index = ((fx - 0.75 * w).hypot(fy - 0.4 * h) / 9.0) as usize;
+                let ring = ring_index.is_multiple_of(2);
+                let stripes = (x / 6 + y / 10).is_multiple_of(2);
+                for c in 0..3 {
+                    let v = 20
+                        + 140 * disc as usize
+                        + 50 * ring as usize
+                        + 30 * stripes as usize
+                        + 7 * c;
+                    pixels.push(v.min(255) as u8);
+                }
+            }
+        }
+        pixels
+    }
+
+    fn to_unit(pixels: &[u8]) -> Vec<f32> {
+        pixels.iter().map(|&v| v as f32 / 255.0).collect()
+    }
+
+    #[test]
+    fn identical_images_score_perfectly() {
+        let (w, h) = (256, 128);
+        let truth = scene(w, h);
+        let m = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+        assert_eq!(m.psnr_right, f64::INFINITY);
+        assert_eq!(m.psnr_full, f64::INFINITY);
+        assert!((m.ssim_right - 1.0).abs() < 1e-12, "{m:?}");
+        assert!((m.ssim_full - 1.0).abs() < 1e-12, "{m:?}");
+        assert!(m.jnb_right.is_finite() && m.jnb_right > 0.0, "{m:?}");
+        assert!(m.jnb_full.is_finite() && m.jnb_full > 0.0, "{m:?}");
+    }
+
+    #[test]
+    fn quantisation_rounds_half_up_and_clamps() {
+        let values = [
+            0.0,
+            0.5 / 255.0 + 1e-6,
+            0.49 / 255.0,
+            1.0,
+            1.7,
+            -0.2,
+            f32::NAN,
+        ];
+        assert_eq!(quantize(&values), vec![0, 1, 0, 255, 255, 0, 0]);
+        assert_eq!(
+            rec601_luma(&[255, 255, 255, 10, 10, 10, 255, 0, 0]),
+            vec![255, 10, 76]
+        );
+    }
+
+    #[test]
+    fn blurred_render_scores_lower_ssim_and_higher_jnb() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/metric_fixtures");
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            eprintln!("skipping: metric fixtures not found at {}", dir.display());
+            return;
+        };
+        let mut sharp_paths: Vec<PathBuf> = entries
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.to_string_lossy().ends_with("_gray.pgm"))
+            .collect();
+        sharp_paths.sort();
+        assert!(!sharp_paths.is_empty());
+        let gray_to_rgb = |gray: &[u8]| gray.iter().flat_map(|&g| [g, g, g]).collect::<Vec<u8>>();
+        for sharp_path in sharp_paths {
+            let blurred_path = PathBuf::from(
+                sharp_path
+                    .to_string_lossy()
+                    .replace("_gray.pgm", "_blur1.pgm"),
+            );
+            let (w, h, sharp) = crate::metrics::tests::read_pgm(&sharp_path);
+            let (bw, bh, blurred) = crate::metrics::tests::read_pgm(&blurred_path);
+            assert_eq!((bw, bh), (w, h));
+            let truth = gray_to_rgb(&sharp);
+            let sharp_scores = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+            let blurred_scores =
+                score_view(&to_unit(&gray_to_rgb(&blurred)), &truth, w, h).unwrap();
+            let name = sharp_path.display();
+            assert!(blurred_scores.ssim_full < sharp_scores.ssim_full, "{name}");
+            assert!(
+                blurred_scores.ssim_right < sharp_scores.ssim_right,
+                "{name}"
+            );
+            assert!(blurred_scores.psnr_full < sharp_scores.psnr_full, "{name}");
+            assert!(blurred_scores.jnb_full > sharp_scores.jnb_full, "{name}");
+            // Gray pixels have luma equal to themselves, so the full-image JNB is exactly the
+            // metric on the fixture (the fixtures' expected value is sharpness = 1 / blur).
+            let direct = metrics::jnb(
+                &ImageRef::new(&blurred, w, h, 1).unwrap(),
+                JnbVariant::Paper,
+            );
+            assert_eq!(blurred_scores.jnb_full, direct.unwrap().blur, "{name}");
+            if w / 2 >= 64 {
+                assert!(blurred_scores.jnb_right > sharp_scores.jnb_right, "{name}");
+            } else {
+                // A right half narrower than one 64-px JNB block has nothing to measure.
+                assert!(blurred_scores.jnb_right.is_nan(), "{name}");
+            }
+        }
+    }
+
+    #[test]
+    fn right_half_metrics_see_only_the_right_half() {
+        let (w, h) = (256, 128);
+        let truth = scene(w, h);
+        let mut render = to_unit(&scene(w, h));
+        // Perturb the right half a little, so its scores are finite and comparable.
+        for (i, v) in render.iter_mut().enumerate() {
+            if (i / 3) % w >= w / 2 && i % 7 == 0 {
+                *v = (*v + 0.03).min(1.0);
+            }
+        }
+        let before = score_view(&render, &truth, w, h).unwrap();
+        for (i, v) in render.iter_mut().enumerate() {
+            if (i / 3) % w < w / 2 {
+                *v = 1.0 - *v;
+            }
+        }
+        let after = score_view(&render, &truth, w, h).unwrap();
+        assert_eq!(before.psnr_right, after.psnr_right);
+        assert_eq!(before.ssim_right, after.ssim_right);
+        assert_eq!(before.jnb_right, after.jnb_right);
+        assert!(after.psnr_full < before.psnr_full);
+        assert!(after.ssim_full < before.ssim_full);
+    }
+
+    #[test]
+    fn blank_render_has_nan_jnb_and_means_skip_it() {
+        let (w, h) = (128, 128);
+        let truth = scene(w, h);
+        let blank = score_view(&vec![0.0; w * h * 3], &truth, w, h).unwrap();
+        assert!(blank.jnb_right.is_nan() && blank.jnb_full.is_nan());
+        assert!(blank.psnr_full.is_finite() && blank.ssim_full < 1.0);
+
+        let textured = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+        let mean = mean_metrics(&[blank, textured]);
+        assert_eq!(mean.jnb_full, textured.jnb_full);
+        assert_eq!(mean.jnb_right, textured.jnb_right);
+        assert_eq!(mean.psnr_full, f64::INFINITY);
+        assert_eq!(mean.ssim_full, (blank.ssim_full + textured.ssim_full) / 2.0);
+        assert!(mean_metrics(&[blank, blank]).jnb_full.is_nan());
+        assert!(mean_metrics(&[]).ssim_full.is_nan());
+    }
+
+    #[test]
+    fn mismatched_buffers_are_errors() {
+        let truth = scene(32, 32);
+        assert!(matches!(
+            score_view(&to_unit(&truth), &truth, 32, 31),
+            Err(MetricError::BufferSize { .. })
+        ));
+        assert!(matches!(
+            score_view(&to_unit(&truth), &truth[..30], 32, 32),
+            Err(MetricError::BufferSize { .. })
+        ));
+    }
+}

@@ -1,0 +1,417 @@
+//! One chunk's buffers and its forward kernels: marching, the density and colour passes,
+//! rendering and the occupancy cells.
+
+use super::*;
+
+/// Activation rows of one mini-batch of `LANES` samples (or their gradients).
+pub(super) struct Rows<'r> {
+    pub(super) feats: &'r mut [Row],
+    pub(super) hidden: &'r mut [Row],
+    pub(super) density_out: &'r mut [Row],
+    pub(super) colour_in: &'r mut [Row],
+    pub(super) colour1: &'r mut [Row],
+    pub(super) colour2: &'r mut [Row],
+    pub(super) rgb: &'r mut [Row],
+}
+
+pub(super) fn split_rows<'r>(c: &Config, rows: &'r mut [Row]) -> Rows<'r> {
+    let (feats, rest) = rows.split_at_mut(c.density_inputs());
+    let (hidden, rest) = rest.split_at_mut(c.density_hidden as usize);
+    let (density_out, rest) = rest.split_at_mut(c.density_outputs());
+    let (colour_in, rest) = rest.split_at_mut(c.colour_inputs());
+    let (colour1, rest) = rest.split_at_mut(c.colour_hidden as usize);
+    let (colour2, rgb) = rest.split_at_mut(c.colour_hidden as usize);
+    Rows {
+        feats,
+        hidden,
+        density_out,
+        colour_in,
+        colour1,
+        colour2,
+        rgb,
+    }
+}
+
+/// One chunk's private buffers.
+pub(super) struct Chunk<'a> {
+    pub(super) plane_grads: &'a mut [f32],
+    pub(super) touched: &'a mut [u64],
+    pub(super) mlp_grads: &'a mut [f32],
+    pub(super) frame_grads: &'a mut [f32],
+    pub(super) positions: &'a mut [[f32; 3]],
+    pub(super) sigma: &'a mut [f32],
+    pub(super) geo: &'a mut [f32],
+    pub(super) rgb: &'a mut [[f32; 3]],
+    pub(super) d_sigma: &'a mut [f32],
+    pub(super) d_rgb: &'a mut [[f32; 3]],
+    pub(super) sample_ray: &'a mut [u32],
+    pub(super) ray_start: &'a mut [u32],
+    pub(super) activations: &'a mut [Row],
+    pub(super) gradients: &'a mut [Row],
+    /// Per-plane bilinear values of each lane's sample (lane-major), kept from the
+    /// recomputed forward pass for the plane backward pass.
+    pub(super) plane_values: &'a mut [f32],
+    /// d loss / d origin and d loss / d direction of each of the chunk's rays (pose correction).
+    pub(super) ray_grads: &'a mut [f32],
+    /// Output gradients of one layer in lane-major order (the weight-gradient kernel's input).
+    pub(super) lane_major: &'a mut [f32],
+    /// First ray of the batch this chunk works on, and how many.
+    pub(super) first_ray: usize,
+    pub(super) ray_count: usize,
+    pub(super) report: ChunkReport,
+}
+
+#[derive(Clone, Copy, Default)]
+pub(super) struct ChunkReport {
+    pub(super) squared_error: f32,
+    pub(super) rays: u32,
+    pub(super) samples: u32,
+    pub(super) marched: u32,
+    pub(super) dropped: u32,
+}
+
+impl Chunk<'_> {
+    /// Origin and direction of ray `r` of the batch.
+    pub(super) fn ray(shared: &Shared<'_>, r: usize) -> (Vec3, Vec3) {
+        let ray = &shared.rays[r];
+        (
+            Vec3::from_array(ray.origin),
+            Vec3::from_array(ray.direction),
+        )
+    }
+
+    /// March rays `first..end` of the batch into the sample buffers, as many as fit.
+    /// Returns the number of rays marched (the rest did not fit).
+    pub(super) fn march_rays(&mut self, shared: &Shared<'_>, first: usize, end: usize) -> usize {
+        let c = shared.config;
+        let capacity = self.positions.len();
+        let mut n = 0usize;
+        self.ray_start[0] = 0;
+        for r in first..end {
+            let (o, d) = Self::ray(shared, r);
+            let jitter = if shared.jitter {
+                rng::unit_f32(rng::hash(
+                    c.seed,
+                    stream::RAY_JITTER,
+                    shared.draw_counter as u64,
+                    r as u64,
+                ))
+            } else {
+                0.5
+            };
+            let mut full = false;
+            render::march(
+                &shared.occupancy,
+                o,
+                d,
+                shared.step_size,
+                jitter,
+                c.max_samples_per_ray as usize,
+                |t| {
+                    if n == capacity {
+                        full = true;
+                        return false;
+                    }
+                    self.positions[n] = (o + d * t).to_array();
+                    self.sample_ray[n] = r as u32;
+                    n += 1;
+                    true
+                },
+            );
+            if full {
+                // Drop this ray's partial samples: the ray did not fit.
+                return r - first;
+            }
+            self.ray_start[r - first + 1] = n as u32;
+        }
+        end - first
+    }
+
+    /// Density (and geometry features) of samples `0..n`.
+    pub(super) fn density_pass(&mut self, shared: &Shared<'_>, n: usize) {
+        let c = shared.config;
+        let geo_len = c.geo_features as usize;
+        for base in (0..n).step_by(LANES) {
+            let lanes = LANES.min(n - base);
+            let mut rows = split_rows(c, self.activations);
+            density_forward(
+                shared,
+                &self.positions[base..base + lanes],
+                &mut rows,
+                self.plane_values,
+            );
+            for l in 0..lanes {
+                self.sigma[base + l] = field::trunc_exp(rows.density_out[0][l]);
+                for g in 0..geo_len {
+                    self.geo[(base + l) * geo_len + g] = rows.density_out[1 + g][l];
+                }
+            }
+        }
+    }
+
+    /// Cut each ray after the sample where its transmittance runs out, and compact the
+    /// kept samples to the front. Returns the number kept.
+    pub(super) fn keep_visible(&mut self, shared: &Shared<'_>, rays: usize) -> usize {
+        let c = shared.config;
+        let geo_len = c.geo_features as usize;
+        let mut write = 0usize;
+        for r in 0..rays {
+            let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
+            let kept = render::kept_samples(
+                &self.sigma[start..end],
+                shared.step_size,
+                c.min_transmittance,
+            );
+            self.ray_start[r] = write as u32;
+            if write != start {
+                self.positions.copy_within(start..start + kept, write);
+                self.sigma.copy_within(start..start + kept, write);
+                self.sample_ray.copy_within(start..start + kept, write);
+                self.geo
+                    .copy_within(start * geo_len..(start + kept) * geo_len, write * geo_len);
+            }
+            write += kept;
+        }
+        self.ray_start[rays] = write as u32;
+        write
+    }
+
+    /// Colours of samples `0..n`.
+    pub(super) fn colour_pass(&mut self, shared: &Shared<'_>, n: usize) {
+        let c = shared.config;
+        for base in (0..n).step_by(LANES) {
+            let lanes = LANES.min(n - base);
+            let mut rows = split_rows(c, self.activations);
+            Self::colour_forward(self.sample_ray, self.geo, shared, base, lanes, &mut rows);
+            for l in 0..lanes {
+                self.rgb[base + l] = [rows.rgb[0][l], rows.rgb[1][l], rows.rgb[2][l]];
+            }
+        }
+    }
+
+    /// The colour MLP on samples `base..base + lanes`: their inputs into `rows.colour_in`,
+    /// then the hidden layers and `rows.rgb`.
+    pub(super) fn colour_forward(
+        sample_ray: &[u32],
+        geo: &[f32],
+        shared: &Shared<'_>,
+        base: usize,
+        lanes: usize,
+        rows: &mut Rows<'_>,
+    ) {
+        Self::load_colour_inputs(sample_ray, geo, shared, base, lanes, rows.colour_in);
+        colour_rows(shared, rows.colour_in, rows.colour1, rows.colour2, rows.rgb);
+    }
+
+    /// Colour-MLP inputs: view encoding, geometry features (stored by the density pass) and
+    /// the appearance embedding. Unused lanes are zero.
+    fn load_colour_inputs(
+        sample_ray: &[u32],
+        geo: &[f32],
+        shared: &Shared<'_>,
+        base: usize,
+        lanes: usize,
+        colour_in: &mut [Row],
+    ) {
+        let c = shared.config;
+        let (sh_len, geo_len, dim) = (
+            c.sh_values(),
+            c.geo_features as usize,
+            c.embedding_dim as usize,
+        );
+        for row in colour_in.iter_mut() {
+            row.fill(0.0);
+        }
+        let mut sh = [0.0f32; 16];
+        for l in 0..lanes {
+            let s = base + l;
+            let r = sample_ray[s] as usize;
+            let (_, d) = Self::ray(shared, r);
+            field::sh_forward(c.sh_degree as usize, d.to_array(), &mut sh);
+            for k in 0..sh_len {
+                colour_in[k][l] = sh[k];
+            }
+            for g in 0..geo_len {
+                colour_in[sh_len + g][l] = geo[s * geo_len + g];
+            }
+            let emb = embedding_of(shared, r);
+            for k in 0..dim {
+                colour_in[sh_len + geo_len + k][l] = emb.get(k).copied().unwrap_or(0.0);
+            }
+        }
+    }
+
+    /// Render this chunk's rays (all of them, in as many passes as the sample capacity
+    /// needs) into `out` (RGB per ray).
+    pub(super) fn render(&mut self, shared: &Shared<'_>, out: &mut [f32]) {
+        let c = shared.config;
+        self.report = ChunkReport::default();
+        let (mut first, end) = (self.first_ray, self.first_ray + self.ray_count);
+        while first < end {
+            // The config guarantees max_samples_per_ray <= samples_per_chunk, so at least
+            // one ray always fits and this loop advances.
+            let rays = self.march_rays(shared, first, end).max(1);
+            let marched = self.ray_start[rays] as usize;
+            self.density_pass(shared, marched);
+            let n = self.keep_visible(shared, rays);
+            self.colour_pass(shared, n);
+            for r in 0..rays {
+                let (start, stop) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
+                let (colour, _) = render::composite_forward(
+                    &self.sigma[start..stop],
+                    &self.rgb[start..stop],
+                    shared.step_size,
+                    c.background,
+                );
+                let o = (first - self.first_ray + r) * 3;
+                out[o..o + 3].copy_from_slice(&colour);
+            }
+            self.report.samples += n as u32;
+            first += rays;
+        }
+    }
+
+    /// Update the running density of `cells` (starting at cell index `first_cell`).
+    pub(super) fn refresh_cells(
+        &mut self,
+        shared: &Shared<'_>,
+        first_cell: usize,
+        cells: &mut [f32],
+    ) {
+        let c = shared.config;
+        let res = c.occupancy_res as usize;
+        let size = (shared.aabb.max - shared.aabb.min) / res as f32;
+        for base in (0..cells.len()).step_by(LANES) {
+            let lanes = LANES.min(cells.len() - base);
+            let mut positions = [[0.0f32; 3]; LANES];
+            for (l, p) in positions.iter_mut().enumerate().take(lanes) {
+                let i = first_cell + base + l;
+                let cell = Vec3::new(
+                    (i % res) as f32,
+                    ((i / res) % res) as f32,
+                    (i / (res * res)) as f32,
+                );
+                let bits = rng::hash(
+                    c.seed,
+                    stream::OCCUPANCY,
+                    shared.draw_counter as u64,
+                    i as u64,
+                );
+                let jitter = Vec3::new(
+                    rng::unit_f32(bits),
+                    rng::unit_f32(bits << 24),
+                    rng::unit_f32(bits << 48),
+                );
+                *p = (shared.aabb.min + (cell + jitter) * size).to_array();
+            }
+            let mut rows = split_rows(c, self.activations);
+            density_forward(shared, &positions[..lanes], &mut rows, self.plane_values);
+            for l in 0..lanes {
+                let d = &mut cells[base + l];
+                let sigma = field::trunc_exp(rows.density_out[0][l]);
+                *d = (*d * c.occupancy_decay).max(sigma);
+            }
+        }
+    }
+}
+
+/// The appearance embedding of the frame ray `r` was drawn from (or the fixed one).
+pub(super) fn embedding_of<'s>(shared: &Shared<'s>, r: usize) -> &'s [f32] {
+    let c = shared.config;
+    match shared.embedding {
+        Embedding::Fixed(e) => e,
+        Embedding::PerFrame(all) => {
+            let slot = shared.ray_frames.get(r).copied().unwrap_or(0) as usize;
+            let n = c.frame_params();
+            all.get(slot * n..slot * n + c.embedding_dim as usize)
+                .unwrap_or(&[])
+        }
+    }
+}
+
+/// The density MLP on up to `LANES` positions: their plane features into `rows.feats`, then
+/// the hidden layer and `rows.density_out`.
+pub(super) fn density_forward(
+    shared: &Shared<'_>,
+    positions: &[[f32; 3]],
+    rows: &mut Rows<'_>,
+    values: &mut [f32],
+) {
+    load_features(shared, positions, rows.feats, values);
+    density_rows(shared, rows.feats, rows.hidden, rows.density_out);
+}
+
+/// Plane features of up to `LANES` positions into `feats` (unused lanes zero), and each
+/// lane's per-plane values into `values` (lane-major).
+fn load_features(
+    shared: &Shared<'_>,
+    positions: &[[f32; 3]],
+    feats: &mut [Row],
+    values: &mut [f32],
+) {
+    let n = feats.len();
+    let mut out = [0.0f32; 4 * 64];
+    for row in feats.iter_mut() {
+        row.fill(0.0);
+    }
+    for (l, (p, values)) in positions
+        .iter()
+        .zip(values.chunks_exact_mut(3 * n))
+        .enumerate()
+    {
+        let u = shared.aabb.normalise(Vec3::from_array(*p));
+        field::planes_forward(shared.planes, shared.geometry, u, &mut out[..n], values);
+        for k in 0..n {
+            feats[k][l] = out[k];
+        }
+    }
+}
+
+fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
+    let (l1, l2) = (
+        shared.layout.layers[DENSITY_HIDDEN],
+        shared.layout.layers[DENSITY_OUT],
+    );
+    let p = shared.mlp;
+    field::layer_forward(
+        &p[l1.weights..l1.biases],
+        &p[l1.biases..l1.biases + l1.outputs],
+        feats,
+        hidden,
+    );
+    field::relu_forward(hidden);
+    field::layer_forward(
+        &p[l2.weights..l2.biases],
+        &p[l2.biases..l2.biases + l2.outputs],
+        hidden,
+        out,
+    );
+}
+
+fn colour_rows(
+    shared: &Shared<'_>,
+    input: &[Row],
+    h1: &mut [Row],
+    h2: &mut [Row],
+    rgb: &mut [Row],
+) {
+    let layers = &shared.layout.layers;
+    let p = shared.mlp;
+    let wb = |i: usize| {
+        let l = layers[i];
+        (&p[l.weights..l.biases], &p[l.biases..l.biases + l.outputs])
+    };
+    let (w, b) = wb(COLOUR_HIDDEN1);
+    field::layer_forward(w, b, input, h1);
+    field::relu_forward(h1);
+    let (w, b) = wb(COLOUR_HIDDEN2);
+    field::layer_forward(w, b, h1, h2);
+    field::relu_forward(h2);
+    let (w, b) = wb(COLOUR_OUT);
+    field::layer_forward(w, b, h2, rgb);
+    for row in rgb.iter_mut() {
+        for v in row.iter_mut() {
+            *v = field::sigmoid(*v);
+        }
+    }
+}

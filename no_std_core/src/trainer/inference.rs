@@ -1,0 +1,156 @@
+//! Using the trained field: rendering an image, and fitting an appearance embedding to a
+//! held-out image with the field frozen.
+
+use super::*;
+
+/// Adam learning rate of `fit_embedding` (only a few dozen steps, on one vector).
+const FIT_LEARNING_RATE: f32 = 0.05;
+
+impl<'a> Trainer<'a> {
+    /// Fit an appearance embedding to one image with the field frozen (the paper's and
+    /// K-Planes' evaluation): `steps` Adam steps, each on a batch of rays through the pixels
+    /// in columns `columns.0..columns.1` (the left half, in the paper). `embedding` holds the
+    /// starting point (the mean training embedding) and receives the result. Returns the
+    /// last step's mean squared error.
+    #[allow(clippy::too_many_arguments)]
+    pub fn fit_embedding<E: Executor>(
+        &mut self,
+        executor: &E,
+        camera: &Camera,
+        pose: &Pose,
+        pixels: &[u8],
+        columns: (u32, u32),
+        steps: u32,
+        embedding: &mut [f32],
+    ) -> Result<f32, Error> {
+        let c = self.config;
+        let dim = c.embedding_dim as usize;
+        if embedding.len() != dim {
+            return Err(Error::BufferSize {
+                what: "embedding",
+                expected: dim,
+                got: embedding.len(),
+            });
+        }
+        if !camera.is_valid() || !pose.is_finite() {
+            return Err(Error::InvalidFrame { field: "camera" });
+        }
+        if pixels.len() != camera.pixel_count() * 3 {
+            return Err(Error::BufferSize {
+                what: "pixels",
+                expected: camera.pixel_count() * 3,
+                got: pixels.len(),
+            });
+        }
+        let (x0, x1) = (
+            columns.0.min(camera.width as u32),
+            columns.1.min(camera.width as u32),
+        );
+        if x0 >= x1 {
+            return Err(Error::InvalidFrame { field: "columns" });
+        }
+        let (mut m, mut v) = ([0.0f32; 128], [0.0f32; 128]);
+        let mut mse = 0.0;
+        for step in 0..steps {
+            for r in 0..c.rays_per_batch as usize {
+                let bits = rng::hash(c.seed, stream::FIT, step as u64, r as u64);
+                let i = x0 + rng::below(bits, x1 - x0);
+                let j = rng::below(bits.rotate_right(32), camera.height as u32);
+                let (o, d) = Self::pixel_ray(camera, pose, i, j);
+                let p = (j as usize * camera.width as usize + i as usize) * 3;
+                self.rays[r] = BatchRay {
+                    origin: o.to_array(),
+                    direction: d.to_array(),
+                    target: core::array::from_fn(|ch| pixels[p + ch] as f32 * (1.0 / 255.0)),
+                    label_direction: d.to_array(),
+                    background: c.background,
+                };
+            }
+            let pass = Pass::FitEmbedding { embedding, step };
+            self.with_chunks(pass, c.rays_per_batch as usize, |shared, chunks| {
+                executor.for_each(chunks, |chunk| chunk.train(shared))
+            });
+            let mut grad = [0.0f32; 128];
+            let (mut squared_error, mut rays) = (0.0f32, 0u32);
+            for chunk in self.chunks.iter_mut() {
+                for (g, d) in grad.iter_mut().zip(chunk.frame_grads[..dim].iter_mut()) {
+                    *g += *d;
+                    *d = 0.0;
+                }
+                chunk.mlp_grads.fill(0.0);
+                squared_error += chunk.report.squared_error;
+                rays += chunk.report.rays;
+            }
+            mse = squared_error / (3 * rays.max(1)) as f32;
+            if !(mse.is_finite() && grad[..dim].iter().all(|g| g.is_finite())) {
+                continue;
+            }
+            let adam = AdamStep::new(&c, FIT_LEARNING_RATE, step + 1);
+            adam.apply(embedding, &grad[..dim], &mut m[..dim], &mut v[..dim]);
+        }
+        Ok(mse)
+    }
+
+    /// Render the image of `camera` at `pose` with a given appearance embedding (length
+    /// `embedding_dim`) into `out` (RGB f32, row-major). Returns the mean samples per ray.
+    pub fn render<E: Executor>(
+        &mut self,
+        executor: &E,
+        camera: &Camera,
+        pose: &Pose,
+        embedding: &[f32],
+        out: &mut [f32],
+    ) -> Result<f32, Error> {
+        let c = self.config;
+        if !camera.is_valid() || !pose.is_finite() {
+            return Err(Error::InvalidFrame { field: "camera" });
+        }
+        if embedding.len() != c.embedding_dim as usize {
+            return Err(Error::BufferSize {
+                what: "embedding",
+                expected: c.embedding_dim as usize,
+                got: embedding.len(),
+            });
+        }
+        let pixels = camera.pixel_count();
+        if out.len() != pixels * 3 {
+            return Err(Error::BufferSize {
+                what: "out",
+                expected: pixels * 3,
+                got: out.len(),
+            });
+        }
+        let batch = c.rays_per_batch as usize;
+        let mut samples = 0u64;
+        for first in (0..pixels).step_by(batch) {
+            let count = batch.min(pixels - first);
+            for r in 0..count {
+                let p = (first + r) as u32;
+                let (o, d) = Self::pixel_ray(
+                    camera,
+                    pose,
+                    p % camera.width as u32,
+                    p / camera.width as u32,
+                );
+                self.rays[r].origin = o.to_array();
+                self.rays[r].direction = d.to_array();
+            }
+            let out_batch = &mut out[first * 3..(first + count) * 3];
+            samples += self.with_chunks(Pass::Render { embedding }, count, |shared, chunks| {
+                let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> =
+                    heapless::Vec::new();
+                let mut rest = out_batch;
+                for chunk in chunks.iter_mut() {
+                    let (mine, tail) = rest.split_at_mut(chunk.ray_count * 3);
+                    rest = tail;
+                    let _ = jobs.push((chunk, mine));
+                }
+                executor.for_each(&mut jobs, |(chunk, out)| chunk.render(shared, out));
+                jobs.iter()
+                    .map(|(chunk, _)| chunk.report.samples as u64)
+                    .sum::<u64>()
+            });
+        }
+        Ok(samples as f32 / pixels as f32)
+    }
+}

@@ -1,0 +1,186 @@
+//! Carving the arena into the trainer's buffers, and the seeded initial parameters.
+
+use super::chunk::ChunkReport;
+use super::*;
+
+impl<'a> Trainer<'a> {
+    /// Validate `config`, lay out `arena` and initialise the parameters from the seed.
+    pub fn new(config: Config, arena: &'a mut [u8]) -> Result<Self, Error> {
+        config.validate()?;
+        let plan = MemoryPlan::new(&config);
+        let mut carver = Carver::new(arena, plan.total)?;
+        let c = &config;
+        let params = c.plane_params();
+        let words = c.texels().div_ceil(64);
+        let mlp_len = c.mlp().total;
+        let frames = c.max_frames as usize;
+        let frame_params = c.frame_params();
+        let chunks = c.chunks as usize;
+        let samples = c.samples_per_chunk as usize;
+        let chunk_rays = c.rays_per_chunk();
+        let mut used = MemoryPlan { total: 0, ..plan };
+        let mut mark = 0;
+        let mut tally = |carver: &Carver, part: &mut usize| {
+            *part = carver.used() - mark;
+            mark = carver.used();
+        };
+
+        let planes = carver.take::<f16>(params)?;
+        tally(&carver, &mut used.planes);
+        let master_len = if c.texel_update == TexelUpdate::MasterCopy {
+            params
+        } else {
+            0
+        };
+        let plane_master = carver.take::<f32>(master_len)?;
+        tally(&carver, &mut used.plane_master);
+        let plane_m = carver.take::<f32>(params)?;
+        let plane_v = carver.take::<f32>(params)?;
+        tally(&carver, &mut used.plane_moments);
+        let mut plane_grad_parts: heapless::Vec<(&mut [f32], &mut [u64]), MAX_CHUNKS> =
+            heapless::Vec::new();
+        for _ in 0..chunks {
+            let g = carver.take::<f32>(params)?;
+            let t = carver.take::<u64>(words)?;
+            let _ = plane_grad_parts.push((g, t));
+        }
+        let touched_union = carver.take::<u64>(words)?;
+        tally(&carver, &mut used.plane_grads);
+        let mlp = carver.take::<f32>(mlp_len)?;
+        let mlp_m = carver.take::<f32>(mlp_len)?;
+        let mlp_v = carver.take::<f32>(mlp_len)?;
+        let mut mlp_grad_parts: heapless::Vec<&mut [f32], MAX_CHUNKS> = heapless::Vec::new();
+        for _ in 0..chunks {
+            let _ = mlp_grad_parts.push(carver.take::<f32>(mlp_len)?);
+        }
+        tally(&carver, &mut used.mlp);
+        let occupancy_bits = carver.take::<u64>(c.occupancy_cells().div_ceil(64))?;
+        let occupancy_density = carver.take::<f32>(c.occupancy_cells())?;
+        tally(&carver, &mut used.occupancy);
+        let pixels = carver.take::<u8>(frames * c.max_pixels_per_frame as usize * 3)?;
+        let masks = carver.take::<u8>(frames * c.max_pixels_per_frame as usize)?;
+        let meta = carver.take::<FrameMeta>(frames)?;
+        let occupied = carver.take::<u16>(frames)?;
+        let frame_param_slice = carver.take::<f32>(frames * frame_params)?;
+        let frame_m = carver.take::<f32>(frames * frame_params)?;
+        let frame_v = carver.take::<f32>(frames * frame_params)?;
+        let mut frame_grad_parts: heapless::Vec<&mut [f32], MAX_CHUNKS> = heapless::Vec::new();
+        for _ in 0..chunks {
+            let _ = frame_grad_parts.push(carver.take::<f32>(frames * frame_params)?);
+        }
+        tally(&carver, &mut used.frames);
+        let rays = carver.take::<BatchRay>(c.rays_per_batch as usize)?;
+        let ray_frames = carver.take::<u32>(c.rays_per_batch as usize)?;
+        tally(&carver, &mut used.ray_batch);
+        let mut chunk_list = heapless::Vec::new();
+        let rows = activation_floats(c);
+        let geo_len = c.geo_features as usize;
+        for (i, ((plane_grads, touched), (mlp_grads, frame_grads))) in plane_grad_parts
+            .into_iter()
+            .zip(mlp_grad_parts.into_iter().zip(frame_grad_parts))
+            .enumerate()
+        {
+            let block = carver.take::<f32>(samples * sample_floats(c))?;
+            let (positions, block) = block.split_at_mut(3 * samples);
+            let (sigma, block) = block.split_at_mut(samples);
+            let (geo, block) = block.split_at_mut(geo_len * samples);
+            let (rgb, block) = block.split_at_mut(3 * samples);
+            let (d_sigma, d_rgb) = block.split_at_mut(samples);
+            let sample_ray = carver.take::<u32>(samples)?;
+            let ray_start = carver.take::<u32>(chunk_rays + 1)?;
+            let act = carver.take::<Row>(2 * rows)?;
+            let (activations, gradients) = act.split_at_mut(rows);
+            let plane_values = carver.take::<f32>(LANES * 3 * c.density_inputs())?;
+            let lane_major = carver.take::<f32>(LANES * widest_layer(c))?;
+            let ray_grads = carver.take::<f32>(chunk_rays * 6)?;
+            let chunk = Chunk {
+                plane_grads,
+                touched,
+                mlp_grads,
+                frame_grads,
+                positions: bytemuck::cast_slice_mut(positions),
+                sigma,
+                geo,
+                rgb: bytemuck::cast_slice_mut(rgb),
+                d_sigma,
+                d_rgb: bytemuck::cast_slice_mut(d_rgb),
+                sample_ray,
+                ray_start,
+                activations,
+                gradients,
+                plane_values,
+                lane_major,
+                ray_grads,
+                first_ray: i * chunk_rays,
+                ray_count: chunk_rays,
+                report: ChunkReport::default(),
+            };
+            if chunk_list.push(chunk).is_err() {
+                return Err(Error::InvalidConfig { field: "chunks" });
+            }
+        }
+        tally(&carver, &mut used.samples);
+        used.total = carver.used();
+
+        let aabb = Aabb {
+            min: Vec3::from_array(c.aabb_min),
+            max: Vec3::from_array(c.aabb_max),
+        };
+        let mut trainer = Trainer {
+            config,
+            geometry: PlaneGeometry::new(&config),
+            layout: config.mlp(),
+            aabb,
+            step_size: aabb.diagonal() / config.march_steps as f32,
+            planes,
+            plane_master,
+            plane_m,
+            plane_v,
+            touched_union,
+            mlp,
+            mlp_m,
+            mlp_v,
+            occupancy_bits,
+            occupancy_density,
+            frames: FrameStore {
+                meta,
+                pixels,
+                masks,
+                occupied,
+                len: 0,
+                max_pixels: c.max_pixels_per_frame as usize,
+            },
+            frame_params: frame_param_slice,
+            frame_m,
+            frame_v,
+            rays,
+            ray_frames,
+            chunks: chunk_list,
+            state: TrainState::default(),
+            used,
+        };
+        trainer.initialise();
+        Ok(trainer)
+    }
+
+    /// Seeded initial parameters: planes uniform in [init_low, init_high], MLP weights
+    /// uniform in ±sqrt(6 / fan_in) (He), zero biases; every occupancy cell occupied.
+    fn initialise(&mut self) {
+        let c = &self.config;
+        let mut rng = rng::Rng::new(rng::hash(c.seed, stream::INIT, 0, 0));
+        for (i, t) in self.planes.iter_mut().enumerate() {
+            let v = c.init_low + (c.init_high - c.init_low) * rng.uniform();
+            *t = f16::from_f32(v);
+            if let Some(m) = self.plane_master.get_mut(i) {
+                *m = t.to_f32();
+            }
+        }
+        for layer in &self.layout.layers {
+            let bound = libm::sqrtf(6.0 / layer.inputs as f32);
+            for w in &mut self.mlp[layer.weights..layer.biases] {
+                *w = bound * (2.0 * rng.uniform() - 1.0);
+            }
+        }
+        self.occupancy_bits.fill(u64::MAX);
+    }
+}

@@ -1,0 +1,266 @@
+//! The fixed-step trainer: everything lives in one arena, a step samples a ray batch,
+//! runs the chunks (on whatever threads the host's [`Executor`] offers), reduces their
+//! gradients in chunk order and applies Adam. Rendering uses the same chunk machinery.
+//!
+//! One type, [`Trainer`], its `impl` split by stage:
+//! - `layout`: carving the arena into the trainer's buffers and the seeded initial values;
+//! - `slots`: putting frames into slots (directly or through the replacement policy);
+//! - `batch`: drawing a step's ray batch;
+//! - `step`: one training step (forward and backward in the chunks, reduction, Adam);
+//! - `occupancy`: refreshing the occupancy grid;
+//! - `inference`: rendering and fitting an appearance embedding to a held-out image;
+//! - `checkpoint`: the state as named byte sections, saved and restored from one table;
+//! - `chunk` and `backward`: the kernels one chunk runs on its own buffers.
+
+use crate::arena::Carver;
+use crate::config::{
+    COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
+    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats, sample_floats,
+    widest_layer,
+};
+use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
+use crate::frames::{FrameMeta, FrameStore, mean_brightness};
+use crate::optim::{self, AdamStep};
+use crate::render::{self, Aabb, OccupancyView};
+use crate::rng::{self, stream};
+use crate::stream::{self as admission, Descriptor, Ingested};
+use crate::{Camera, Error, Pose, PoseCorrection};
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use half::f16;
+
+mod backward;
+mod batch;
+mod checkpoint;
+mod chunk;
+mod inference;
+mod layout;
+mod occupancy;
+mod slots;
+mod step;
+#[cfg(test)]
+mod tests;
+
+use batch::BatchRay;
+use chunk::Chunk;
+
+/// Runs a closure over every item, possibly in parallel. Results must not depend on the
+/// order or the thread: the core gives each item its own buffers.
+pub trait Executor {
+    fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F);
+}
+
+/// Runs items one after another on the calling thread.
+pub struct Sequential;
+
+impl Executor for Sequential {
+    fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F) {
+        items.iter_mut().for_each(f);
+    }
+}
+
+/// What one training step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct StepReport {
+    /// Mean squared error per channel over the rays that were rendered.
+    pub mse: f32,
+    pub rays: u32,
+    /// Samples that reached the colour MLP and the backward pass (before the early stop).
+    pub samples: u32,
+    /// Samples marched through occupied space (all get a density evaluation).
+    pub samples_marched: u32,
+    /// Rays dropped because their chunk's sample capacity ran out.
+    pub dropped_rays: u32,
+    /// True if the loss or a gradient was not finite and the update was skipped.
+    pub skipped: bool,
+}
+
+/// Counters that belong to the training state (and to checkpoints).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct TrainState {
+    /// Steps taken (applied or skipped).
+    pub step: u32,
+    /// Updates applied (Adam's time step).
+    pub updates: u32,
+    /// Steps skipped because the loss or a gradient was not finite.
+    pub skipped: u32,
+    /// Occupancy refreshes done.
+    pub refreshes: u32,
+}
+
+/// The trainer and everything it owns, all borrowed from one arena.
+pub struct Trainer<'a> {
+    config: Config,
+    geometry: PlaneGeometry,
+    layout: MlpLayout,
+    aabb: Aabb,
+    step_size: f32,
+    planes: &'a mut [f16],
+    plane_master: &'a mut [f32],
+    plane_m: &'a mut [f32],
+    plane_v: &'a mut [f32],
+    touched_union: &'a mut [u64],
+    mlp: &'a mut [f32],
+    mlp_m: &'a mut [f32],
+    mlp_v: &'a mut [f32],
+    occupancy_bits: &'a mut [u64],
+    occupancy_density: &'a mut [f32],
+    frames: FrameStore<'a>,
+    frame_params: &'a mut [f32],
+    frame_m: &'a mut [f32],
+    frame_v: &'a mut [f32],
+    rays: &'a mut [BatchRay],
+    ray_frames: &'a mut [u32],
+    chunks: heapless::Vec<Chunk<'a>, MAX_CHUNKS>,
+    state: TrainState,
+    used: MemoryPlan,
+}
+
+/// What the chunks are run for. It decides the appearance embedding they use, the counter
+/// that keys their random draws, and which gradients their backward pass produces.
+#[derive(Clone, Copy)]
+enum Pass<'s> {
+    /// A training step: each ray uses its frame's embedding; draws are keyed by the step.
+    Train,
+    /// One step of fitting `embedding` to an image with the field frozen.
+    FitEmbedding { embedding: &'s [f32], step: u32 },
+    /// Rendering with `embedding`: no jitter, samples at the middle of each marching step.
+    Render { embedding: &'s [f32] },
+    /// Re-estimating the occupancy grid; draws are keyed by the refresh count.
+    Occupancy,
+}
+
+/// Where the colour MLP's appearance embedding comes from.
+#[derive(Clone, Copy)]
+enum Embedding<'s> {
+    /// Each ray uses the embedding of the frame it was sampled from.
+    PerFrame(&'s [f32]),
+    /// Every ray uses this one (rendering, embedding fit).
+    Fixed(&'s [f32]),
+}
+
+/// Read-only state shared by all chunks during a pass.
+#[derive(Clone, Copy)]
+struct Shared<'s> {
+    config: &'s Config,
+    geometry: &'s PlaneGeometry,
+    layout: &'s MlpLayout,
+    aabb: Aabb,
+    step_size: f32,
+    planes: &'s [f16],
+    mlp: &'s [f32],
+    occupancy: OccupancyView<'s>,
+    rays: &'s [BatchRay],
+    ray_frames: &'s [u32],
+    /// The frame slots' metadata (label poses), for the pose-correction gradients.
+    frame_meta: &'s [FrameMeta],
+    embedding: Embedding<'s>,
+    /// Keys the pass's random draws: the training step, the fit step or the refresh count.
+    draw_counter: u32,
+    /// Offset the sample positions along each ray by a seeded fraction of a step.
+    jitter: bool,
+    /// Only the fixed embedding is being fitted: the backward pass stops at the colour MLP's
+    /// input and sends the embedding's gradient to the chunk's first frame-gradient slot.
+    fit_embedding: bool,
+    /// The pose corrections learn from this pass: the backward pass carries gradients on to
+    /// the rays' origins and directions and folds them into the frames' corrections.
+    pose_gradients: bool,
+}
+
+impl<'a> Trainer<'a> {
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// Bytes actually taken from the arena, per part (equals `MemoryPlan::new(config)`
+    /// except for `total`, which here excludes the alignment slack).
+    pub fn memory_used(&self) -> MemoryPlan {
+        self.used
+    }
+
+    pub fn state(&self) -> TrainState {
+        self.state
+    }
+
+    pub fn frames(&self) -> &FrameStore<'a> {
+        &self.frames
+    }
+
+    pub fn planes(&self) -> &[f16] {
+        self.planes
+    }
+
+    pub fn mlp_parameters(&self) -> &[f32] {
+        self.mlp
+    }
+
+    /// The read-only view of the model the chunks work with during `pass`.
+    fn shared<'s>(&'s self, pass: Pass<'s>) -> Shared<'s> {
+        let (embedding, draw_counter) = match pass {
+            Pass::Train => (Embedding::PerFrame(&*self.frame_params), self.state.step),
+            Pass::FitEmbedding { embedding, step } => (Embedding::Fixed(embedding), step),
+            Pass::Render { embedding } => (Embedding::Fixed(embedding), 0),
+            Pass::Occupancy => (Embedding::Fixed(&[]), self.state.refreshes),
+        };
+        Shared {
+            config: &self.config,
+            geometry: &self.geometry,
+            layout: &self.layout,
+            aabb: self.aabb,
+            step_size: self.step_size,
+            planes: self.planes,
+            mlp: self.mlp,
+            occupancy: OccupancyView {
+                bits: self.occupancy_bits,
+                res: self.config.occupancy_res as usize,
+                aabb: self.aabb,
+            },
+            rays: self.rays,
+            ray_frames: self.ray_frames,
+            frame_meta: self.frames.meta,
+            embedding,
+            draw_counter,
+            jitter: !matches!(pass, Pass::Render { .. }),
+            fit_embedding: matches!(pass, Pass::FitEmbedding { .. }),
+            pose_gradients: matches!(pass, Pass::Train)
+                && self.config.pose_learns_at(self.state.step),
+        }
+    }
+
+    /// Move the chunks out, give them consecutive runs of the batch's first `rays` rays
+    /// (none for the occupancy pass), hand them to `run` beside the shared view for `pass`,
+    /// and put them back. The view borrows the rest of the trainer while the chunks work.
+    fn with_chunks<R>(
+        &mut self,
+        pass: Pass<'_>,
+        rays: usize,
+        run: impl FnOnce(&Shared<'_>, &mut [Chunk<'a>]) -> R,
+    ) -> R {
+        let mut chunks = core::mem::take(&mut self.chunks);
+        let per_chunk = rays.div_ceil(chunks.len());
+        for (i, chunk) in chunks.iter_mut().enumerate() {
+            chunk.first_ray = (i * per_chunk).min(rays);
+            chunk.ray_count = per_chunk.min(rays - chunk.first_ray);
+        }
+        let result = run(&self.shared(pass), &mut chunks);
+        self.chunks = chunks;
+        result
+    }
+}
+
+/// Indices of the set bits of a bitmap, in increasing order (the touched texels).
+fn set_bits(words: &[u64]) -> impl Iterator<Item = usize> + '_ {
+    words.iter().enumerate().flat_map(|(w, &word)| {
+        let mut bits = word;
+        core::iter::from_fn(move || {
+            if bits == 0 {
+                return None;
+            }
+            let bit = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            Some(w * 64 + bit)
+        })
+    })
+}

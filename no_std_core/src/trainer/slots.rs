@@ -1,0 +1,92 @@
+//! Frame slots: putting frames in (directly or through the replacement policy) and their
+//! learnable parameters.
+
+use super::*;
+
+impl<'a> Trainer<'a> {
+    /// The learnable parameters of a frame slot: appearance embedding, then pose correction.
+    pub fn frame_parameters(&self, slot: usize) -> Option<&[f32]> {
+        let n = self.config.frame_params();
+        self.frame_params.get(slot * n..(slot + 1) * n)
+    }
+
+    /// Mean appearance embedding of the occupied frames (zeros without frames).
+    pub fn mean_embedding(&self, out: &mut [f32]) {
+        let n = self.config.frame_params();
+        out.fill(0.0);
+        let count = self.frames.len();
+        for i in 0..count {
+            let Some(slot) = self.frames.occupied_slot(i) else {
+                continue;
+            };
+            for (o, v) in out.iter_mut().zip(&self.frame_params[slot * n..]) {
+                *o += v / count as f32;
+            }
+        }
+    }
+
+    /// Put a frame into `slot`. Its embedding starts at the mean of the other frames'
+    /// embeddings, its pose correction at zero, and its optimizer moments are cleared.
+    pub fn set_frame(
+        &mut self,
+        slot: usize,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<(), Error> {
+        self.frames.set(slot, camera, pose, pixels, mask)?;
+        let n = self.config.frame_params();
+        let dim = self.config.embedding_dim as usize;
+        let mut mean = [0.0f32; 128];
+        let mut others = 0;
+        for i in 0..self.frames.len() {
+            let Some(s) = self.frames.occupied_slot(i).filter(|&s| s != slot) else {
+                continue;
+            };
+            for (m, v) in mean.iter_mut().zip(&self.frame_params[s * n..s * n + dim]) {
+                *m += v;
+            }
+            others += 1;
+        }
+        let params = &mut self.frame_params[slot * n..(slot + 1) * n];
+        params.fill(0.0);
+        if others > 0 {
+            for (p, m) in params.iter_mut().zip(&mean[..dim]) {
+                *p = m / others as f32;
+            }
+        }
+        self.frame_m[slot * n..(slot + 1) * n].fill(0.0);
+        self.frame_v[slot * n..(slot + 1) * n].fill(0.0);
+        Ok(())
+    }
+
+    pub fn clear_frame(&mut self, slot: usize) {
+        self.frames.clear(slot);
+    }
+
+    /// Stream a frame into the store. `arrival` counts the frames offered before it (it keys
+    /// the policy's randomness and is kept with the slot). The frame is checked as `set_frame`
+    /// checks it and refused if all black or all saturated; then the config's replacement
+    /// policy (`stream.rs`) picks its slot or turns it away. A stored frame's per-frame state
+    /// is reset as `set_frame` does.
+    pub fn ingest_frame(
+        &mut self,
+        arrival: u32,
+        camera: Camera,
+        pose: Pose,
+        pixels: &[u8],
+        mask: Option<&[u8]>,
+    ) -> Result<Ingested, Error> {
+        self.frames.check(&camera, &pose, pixels, mask)?;
+        admission::check_exposure(pixels)?;
+        let incoming = Descriptor::new(&self.config, &pose, mean_brightness(pixels));
+        let Some(slot) = admission::choose_slot(&self.config, &self.frames, &incoming, arrival)
+        else {
+            return Ok(Ingested::Rejected);
+        };
+        self.set_frame(slot, camera, pose, pixels, mask)?;
+        self.frames.set_arrival(slot, arrival);
+        Ok(Ingested::Stored { slot })
+    }
+}

@@ -1,0 +1,194 @@
+//! Gradient checks of the training pass against finite differences.
+
+use super::*;
+use crate::PosePivot;
+use glam::Mat3;
+
+/// A small field with embeddings and pose correction, one 8x8 frame seen from inside the
+/// box (so every ray starts at t = 0 and the sample lattice does not move with the pose;
+/// the gradient treats sample distances as fixed, which is exact here).
+fn small_config() -> Config {
+    let mut c = Config::DEFAULT;
+    c.scales = 2;
+    c.resolutions = [8, 16, 0, 0];
+    c.features = 8;
+    c.density_hidden = 16;
+    c.geo_features = 7;
+    c.colour_hidden = 16;
+    c.sh_degree = 3;
+    c.embedding_dim = 4;
+    c.pose_correction = true;
+    c.occupancy_res = 8;
+    c.march_steps = 128;
+    // 24 steps of 3 * sqrt(3) / 128 end before any ray from the camera below can leave
+    // the box, so every ray keeps exactly 24 samples whatever the pose perturbation.
+    c.max_samples_per_ray = 24;
+    c.max_frames = 2;
+    c.max_pixels_per_frame = 64;
+    c.rays_per_batch = 32;
+    c.chunks = 2;
+    c.samples_per_chunk = 16 * 24;
+    c
+}
+
+/// Loss of the current batch (sum of squared errors / (3 * rays_per_batch), the quantity
+/// the step differentiates) and the frame gradients of slot 0; no update is applied.
+fn loss_and_frame_gradients(trainer: &mut Trainer<'_>) -> (f64, [f32; 10]) {
+    trainer.forward_backward(&Sequential).unwrap();
+    let mut sse = 0.0f64;
+    let mut grads = [0.0f32; 10];
+    for chunk in trainer.chunks.iter_mut() {
+        sse += chunk.report.squared_error as f64;
+        for (g, c) in grads.iter_mut().zip(chunk.frame_grads.iter()) {
+            *g += c;
+        }
+        chunk.frame_grads.fill(0.0);
+        chunk.mlp_grads.fill(0.0);
+        chunk.plane_grads.fill(0.0);
+        chunk.touched.fill(0);
+    }
+    (sse / (3.0 * trainer.config.rays_per_batch as f64), grads)
+}
+
+#[test]
+fn embedding_and_pose_correction_gradients_match_finite_differences() {
+    for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
+        let mut config = small_config();
+        config.pose_pivot = pivot;
+        check_frame_gradients(config);
+    }
+}
+
+#[test]
+fn pose_corrections_neither_learn_nor_get_gradients_during_the_warm_up() {
+    let mut config = small_config();
+    config.pose_warmup_steps = 3;
+    let mut arena = [0u8; 1 << 20];
+    let arena = &mut arena[..MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, arena).unwrap();
+    put_test_frame(&mut trainer);
+    let dim = config.embedding_dim as usize;
+    for _ in 0..3 {
+        let (_, grads) = loss_and_frame_gradients(&mut trainer);
+        assert!(grads[dim..].iter().all(|&g| g == 0.0), "{grads:?}");
+        assert!(grads[..dim].iter().any(|&g| g != 0.0), "{grads:?}");
+        trainer.step(&Sequential).unwrap();
+        assert!(trainer.frame_params[dim..dim + 6].iter().all(|&p| p == 0.0));
+    }
+    let (_, grads) = loss_and_frame_gradients(&mut trainer);
+    assert!(grads[dim..].iter().any(|&g| g != 0.0), "{grads:?}");
+    trainer.step(&Sequential).unwrap();
+    assert!(trainer.frame_params[dim..dim + 6].iter().any(|&p| p != 0.0));
+}
+
+#[test]
+fn masked_out_pixels_train_against_a_random_background_per_ray() {
+    let mut config = small_config();
+    config.background = [1.0; 3];
+    config.rays_per_batch = 256;
+    for random_background in [false, true] {
+        config.random_background = random_background;
+        let mut arena = [0u8; 1 << 20];
+        let arena = &mut arena[..MemoryPlan::new(&config).total];
+        let mut trainer = Trainer::new(config, arena).unwrap();
+        let camera = test_camera();
+        let pose = Pose {
+            rotation: Mat3::IDENTITY,
+            center: Vec3::new(0.0, 0.0, -3.0),
+        };
+        // Left half: the target (grey 100, mask 255); right half: white sky (mask 0).
+        let mask: [u8; 64] = core::array::from_fn(|p| if p % 8 < 4 { 255 } else { 0 });
+        let pixels: [u8; 192] = core::array::from_fn(|k| if mask[k / 3] != 0 { 100 } else { 255 });
+        trainer
+            .set_frame(0, camera, pose, &pixels, Some(&mask))
+            .unwrap();
+        trainer.sample_rays().unwrap();
+        let (mut target_rays, mut sky_rays, mut lowest, mut highest) = (0, 0, 1.0f32, 0.0f32);
+        for ray in trainer.rays.iter() {
+            let (target, background) = (ray.target, ray.background);
+            if (target[0] - 100.0 / 255.0).abs() < 1e-6 {
+                // On the target the pixel is the target, whatever the background.
+                target_rays += 1;
+                assert_eq!(background, [1.0; 3]);
+            } else {
+                // In the sky the target colour is the ray's background.
+                sky_rays += 1;
+                for (t, b) in target.iter().zip(background) {
+                    assert!((t - b).abs() < 1e-6, "{target:?} {background:?}");
+                }
+                for b in background {
+                    assert!((0.0..=1.0).contains(&b));
+                    lowest = lowest.min(b);
+                    highest = highest.max(b);
+                }
+            }
+        }
+        assert!(
+            target_rays > 50 && sky_rays > 50,
+            "{target_rays} {sky_rays}"
+        );
+        if random_background {
+            assert!(lowest < 0.1 && highest > 0.9, "{lowest} {highest}");
+        } else {
+            assert_eq!((lowest, highest), (1.0, 1.0));
+        }
+    }
+}
+
+/// The 8x8 camera of the tests' frames.
+fn test_camera() -> Camera {
+    Camera {
+        width: 8,
+        height: 8,
+        fx: 6.0,
+        fy: 6.0,
+        cx: 4.0,
+        cy: 4.0,
+    }
+}
+
+/// One 8x8 frame of random pixels in slot 0, seen from inside the box.
+fn put_test_frame(trainer: &mut Trainer<'_>) {
+    let camera = test_camera();
+    let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
+    let pose = Pose {
+        rotation,
+        center: Vec3::new(0.2, -0.1, 0.3),
+    };
+    let mut rng = rng::Rng::new(11);
+    let mut pixels = [0u8; 8 * 8 * 3];
+    for p in pixels.iter_mut() {
+        *p = (rng.uniform() * 255.0) as u8;
+    }
+    trainer.set_frame(0, camera, pose, &pixels, None).unwrap();
+}
+
+fn check_frame_gradients(config: Config) {
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let Some(arena) = arena.get_mut(..plan.total) else {
+        panic!("test arena too small: {}", plan.total)
+    };
+    let mut trainer = Trainer::new(config, arena).unwrap();
+    put_test_frame(&mut trainer);
+    let start = [0.3, -0.2, 0.1, 0.25, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03];
+    trainer.frame_params[..10].copy_from_slice(&start);
+    let (_, analytic) = loss_and_frame_gradients(&mut trainer);
+    for i in 0..10 {
+        let h = if i < 4 { 1e-2 } else { 1e-3 };
+        let mut at = |x: f32| {
+            trainer.frame_params[i] = x;
+            let (loss, _) = loss_and_frame_gradients(&mut trainer);
+            trainer.frame_params[i] = start[i];
+            loss
+        };
+        let numeric = ((at(start[i] + h) - at(start[i] - h)) / (2.0 * h as f64)) as f32;
+        let scale = numeric.abs().max(analytic[i].abs()).max(1e-4);
+        assert!(
+            (analytic[i] - numeric).abs() / scale < 0.05,
+            "{:?}, parameter {i}: analytic {} vs numeric {numeric}",
+            config.pose_pivot,
+            analytic[i]
+        );
+    }
+}

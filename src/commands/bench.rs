@@ -1,0 +1,91 @@
+//! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed.
+
+use super::{CliResult, DataArgs, open_dataset, with_trainer};
+use clap::Args;
+use orbit_nerf_core::Config;
+use orbit_nerf_host::train::{self, RayonExecutor};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Dataset to train on (default: the lego scene).
+    #[arg(long, default_value = "../shared/data/nerf_synthetic/lego")]
+    data: PathBuf,
+    #[arg(long, default_value_t = 100)]
+    size: u32,
+    /// Steps before timing starts (lets the occupancy grid settle).
+    #[arg(long, default_value_t = 300)]
+    warmup: u32,
+    /// Timed steps.
+    #[arg(long, default_value_t = 200)]
+    steps: u32,
+    /// Thread counts to measure.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    threads: Vec<usize>,
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+pub fn run(args: &BenchArgs) -> CliResult {
+    let data = DataArgs {
+        data: args.data.clone(),
+        size: args.size,
+        holdout: 8,
+    };
+    let (dataset, train_idx, _) = open_dataset(&data)?;
+    let mut base = match &args.config {
+        Some(path) => train::read_config(path)?,
+        None => Config::DEFAULT,
+    };
+    base.steps = args.warmup + args.steps;
+    let config = train::fit_config(&base, &dataset, train_idx.len());
+    let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
+    println!(
+        "model: {} scales {:?} x {} features, density MLP {}->{}->{}, colour MLP {}->{}->{}->3, SH degree {}, occupancy {}^3, {} rays/step",
+        config.scales,
+        &config.resolutions[..config.scales as usize],
+        config.features,
+        config.density_inputs(),
+        config.density_hidden,
+        config.density_outputs(),
+        config.colour_inputs(),
+        config.colour_hidden,
+        config.colour_hidden,
+        config.sh_degree,
+        config.occupancy_res,
+        config.rays_per_batch
+    );
+    println!(
+        "{:>7}  {:>12}  {:>10}  {:>11}  {:>14}  {:>9}",
+        "threads", "samples/s", "rays/s", "samples/ray", "marched/ray", "ms/step"
+    );
+    for &threads in &args.threads {
+        let executor = RayonExecutor::new(threads)?;
+        with_trainer(config, &frames, |trainer| {
+            for _ in 0..args.warmup {
+                trainer.step(&executor)?;
+            }
+            let (mut rays, mut samples, mut marched) = (0u64, 0u64, 0u64);
+            let start = Instant::now();
+            for _ in 0..args.steps {
+                let r = trainer.step(&executor)?;
+                rays += r.rays as u64;
+                samples += r.samples as u64;
+                marched += r.samples_marched as u64;
+            }
+            let seconds = start.elapsed().as_secs_f64();
+            println!(
+                "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
+                samples as f64 / seconds,
+                rays as f64 / seconds,
+                samples as f64 / rays.max(1) as f64,
+                marched as f64 / rays.max(1) as f64,
+                1000.0 * seconds / args.steps as f64
+            );
+            Ok(())
+        })?;
+    }
+    println!("samples/s counts samples through forward + backward + update (after the early stop)");
+    Ok(())
+}

@@ -1,0 +1,178 @@
+//! The CLI's commands, one file each, and what several of them share: the dataset and model
+//! arguments, a dataset with its held-out split, trainers over fresh arenas, progress bars.
+
+pub mod ablate;
+pub mod bench;
+pub mod demo;
+pub mod eval;
+pub mod render;
+pub mod simulate;
+pub mod stream;
+pub mod train;
+
+use clap::Args;
+use indicatif::ProgressStyle;
+use orbit_nerf_core::MemoryPlan;
+use orbit_nerf_core::{Config, Trainer};
+use orbit_nerf_host::dataset::{self, Dataset, Frame};
+use orbit_nerf_host::formats;
+use orbit_nerf_host::train::{
+    RayonExecutor, ViewScore, checkpoint_config, evaluate, load_frames, read_config,
+    restore_checkpoint,
+};
+use std::path::{Path, PathBuf};
+
+pub type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
+pub type CliResult = Fallible<()>;
+/// A dataset with its training and held-out view indices.
+type SplitDataset = (Dataset, Vec<usize>, Vec<usize>);
+
+#[derive(Args, Clone)]
+struct DataArgs {
+    /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT.
+    #[arg(long)]
+    data: PathBuf,
+    /// Resize images so the longer side has this many pixels.
+    #[arg(long, default_value_t = 100)]
+    size: u32,
+    /// Every N-th view (0, N, 2N, ...) is held out for evaluation.
+    #[arg(long, default_value_t = 8)]
+    holdout: usize,
+}
+
+#[derive(Args, Clone)]
+struct ModelArgs {
+    /// Full model and training config (TOML, every field; see budgets/).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Training steps (overrides the config).
+    #[arg(long)]
+    steps: Option<u32>,
+    /// Random seed (overrides the config).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Worker threads (results do not depend on it).
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    /// Appearance embedding size per frame (overrides the config; 0 disables it).
+    #[arg(long)]
+    embedding_dim: Option<u16>,
+    /// Learn a pose correction per frame (overrides the config).
+    #[arg(long)]
+    pose_correction: Option<bool>,
+    /// Evaluation: steps fitting a held-out view's embedding on its left half.
+    #[arg(long, default_value_t = FIT_STEPS)]
+    fit_steps: u32,
+}
+
+/// Default steps fitting a held-out view's appearance embedding.
+const FIT_STEPS: u32 = 50;
+
+/// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (the loader
+/// sets that itself).
+const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
+
+fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
+    let dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
+    if dataset.frames.is_empty() {
+        return Err(format!("{}: no frames", data.data.display()).into());
+    }
+    let (train, test) = dataset::split_every(dataset.frames.len(), data.holdout);
+    Ok((dataset, train, test))
+}
+
+fn model_config(model: &ModelArgs) -> Fallible<Config> {
+    let mut config = match &model.config {
+        Some(path) => read_config(path)?,
+        None => Config::DEFAULT,
+    };
+    if let Some(steps) = model.steps {
+        config.steps = steps;
+        config.warmup_steps = config.warmup_steps.min(steps);
+    }
+    if let Some(seed) = model.seed {
+        config.seed = seed;
+    }
+    if let Some(dim) = model.embedding_dim {
+        config.embedding_dim = dim;
+    }
+    if let Some(on) = model.pose_correction {
+        config.pose_correction = on;
+    }
+    Ok(config)
+}
+
+/// A trainer over a fresh arena, with the training frames loaded.
+fn with_trainer<R>(
+    config: Config,
+    frames: &[&Frame],
+    f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>,
+) -> Fallible<R> {
+    let plan = MemoryPlan::new(&config);
+    let mut arena = vec![0u8; plan.total];
+    let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
+    load_frames(&mut trainer, frames.iter().copied())?;
+    f(&mut trainer)
+}
+
+fn print_scores(scores: &[ViewScore]) -> f64 {
+    println!(
+        "{:>6}  {:>8}  {:>11}  view",
+        "index", "PSNR dB", "samples/ray"
+    );
+    for s in scores {
+        println!(
+            "{:>6}  {:>8.2}  {:>11.1}  {}",
+            s.index, s.psnr, s.samples_per_ray, s.name
+        );
+    }
+    let mean = scores.iter().map(|s| s.psnr).sum::<f64>() / scores.len().max(1) as f64;
+    println!(
+        "mean PSNR over {} held-out views: {mean:.2} dB",
+        scores.len()
+    );
+    mean
+}
+
+/// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
+/// fitting each view's embedding for `fit_steps`; renders go to `renders` when given.
+fn evaluate_checkpoint(
+    path: &Path,
+    threads: usize,
+    dataset: &Dataset,
+    views: &[usize],
+    fit_steps: u32,
+    renders: Option<&Path>,
+) -> Fallible<Vec<ViewScore>> {
+    let executor = RayonExecutor::new(threads)?;
+    let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
+    let config = checkpoint_config(path, &checkpoint)?;
+    with_trainer(config, &[], |trainer| {
+        restore_checkpoint(path, &checkpoint, trainer)?;
+        Ok(evaluate(
+            trainer, &executor, dataset, views, fit_steps, renders,
+        )?)
+    })
+}
+
+/// The style of every command's progress bars: `template` in indicatif's syntax.
+fn bar_style(template: &str) -> Fallible<ProgressStyle> {
+    Ok(ProgressStyle::with_template(template)?.progress_chars("=> "))
+}
+
+/// The running PSNR shown while training: an exponential average of the steps' MSE (skipped
+/// steps left out), in dB.
+#[derive(Default)]
+struct RunningPsnr(Option<f64>);
+
+impl RunningPsnr {
+    fn add(&mut self, mse: f32) {
+        let mse = mse as f64;
+        self.0 = Some(self.0.map_or(mse, |r| 0.95 * r + 0.05 * mse));
+    }
+
+    /// 0 before the first step.
+    fn db(&self) -> f64 {
+        self.0.map_or(0.0, |m| -10.0 * m.max(1e-12).log10())
+    }
+}
