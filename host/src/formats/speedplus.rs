@@ -190,7 +190,16 @@ impl SpeedCamera {
     /// Read and check a camera file in any of the layouts above; `distCoeffs` may be absent
     /// (no distortion).
     pub fn read(path: &Path) -> Result<SpeedCamera> {
-        let json = JsonFile::read(path)?;
+        SpeedCamera::from_json(JsonFile::read(path)?)
+    }
+
+    /// [`SpeedCamera::read`] on the text of the file `path` names.
+    pub fn parse(path: &Path, text: &str) -> Result<SpeedCamera> {
+        SpeedCamera::from_json(JsonFile::parse(path, text)?)
+    }
+
+    fn from_json(json: JsonFile) -> Result<SpeedCamera> {
+        let path = json.path.as_path();
         let value = &json.root;
         let optional = |key: &str| -> Result<Option<f64>> {
             value.get(key).map(|v| json.positive(v, key)).transpose()

@@ -254,8 +254,8 @@ impl<'s> FrameSimulator<'s> {
     pub fn new(scene: &'s Scene) -> Result<FrameSimulator<'s>> {
         let spec = &scene.spec;
         let target = Target::build(scene)?;
-        let sensor =
-            SpeedCamera::read(&scene.resolve_path("camera.intrinsics", &spec.camera.intrinsics)?)?;
+        let intrinsics = scene.resolve_data("camera.intrinsics", &spec.camera.intrinsics)?;
+        let sensor = SpeedCamera::parse(&intrinsics.origin(), &intrinsics.text()?)?;
         let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
         Ok(FrameSimulator {
             scene,
