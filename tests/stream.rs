@@ -68,7 +68,8 @@ fn stream_api(
             store,
             Replacement::Novelty,
             settings().steps_per_frame,
-        );
+        )
+        .unwrap();
         let state = StreamState::new(settings(), store as usize);
         (config, state, None)
     };

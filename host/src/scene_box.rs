@@ -1,6 +1,8 @@
 //! The scene box of an unknown target, found from the data: a visual hull carved on a voxel
 //! grid from each frame's foreground (its mask, or the bright target against the black sky)
-//! and its labelled pose, then the hull's bounds plus a margin.
+//! and its labelled pose, then the hull's bounds plus a margin. And the rule that picks a
+//! dataset's box ([`choose_scene_box`]): a box the user states (a flag, then a config file
+//! that sets one) wins over the data's own (a truth file), which wins over one found here.
 //!
 //! Why a hull and not the cameras alone: the cameras tell where the target is (their axes
 //! converge on it) but not how big it is; the silhouettes do. Label noise moves a silhouette by
@@ -8,7 +10,8 @@
 //! views that see it see sky there (dilating the silhouettes instead inflated thin targets by
 //! the dilation in every view: measured on boxes seen from 80 views with 0-1 degree label noise).
 
-use crate::dataset::Frame;
+use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
+use crate::error::{HostError, Result as HostResult};
 use glam::{DMat3, DVec3, Vec3};
 use rayon::prelude::*;
 use std::fmt;
@@ -214,6 +217,99 @@ pub fn find_scene_box_with(frames: &[Frame], carving: &Carving) -> Result<FoundB
         grid: FINE,
         margin_share: carving.margin_share,
     })
+}
+
+/// A box the user stated, with what stated it (`--scene-box`, a config file).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StatedBox {
+    pub min: [f32; 3],
+    pub max: [f32; 3],
+    pub by: String,
+}
+
+/// Set `dataset`'s scene box by the rule: `stated` (the user's) if given, else the data's own,
+/// else found from the frames `frames` (the training views, so held-out views play no part).
+/// Returns one line saying the box and why.
+pub fn choose_scene_box(
+    dataset: &mut Dataset,
+    stated: Option<StatedBox>,
+    frames: &[usize],
+) -> HostResult<String> {
+    if let Some(stated) = stated {
+        dataset.scene_min = stated.min;
+        dataset.scene_max = stated.max;
+        dataset.scene_box = SceneBoxOrigin::Stated(stated.by);
+    }
+    let why = match &dataset.scene_box {
+        SceneBoxOrigin::Data(what) => format!("from {what}"),
+        SceneBoxOrigin::Stated(by) => format!("given by {by}"),
+        SceneBoxOrigin::Found(account) => return Ok(account.clone()),
+        SceneBoxOrigin::Unknown => {
+            let views: Vec<Frame> = frames
+                .iter()
+                .filter_map(|&i| dataset.frames.get(i).cloned())
+                .collect();
+            let found = find_scene_box(&views).map_err(|e| {
+                HostError::invalid(
+                    &dataset.source,
+                    format!(
+                        "{e}; the data gives no scene box (no truth.json): state one with \
+                         --scene-box xmin,ymin,zmin,xmax,ymax,zmax"
+                    ),
+                )
+            })?;
+            dataset.scene_min = found.min;
+            dataset.scene_max = found.max;
+            dataset.scene_box = SceneBoxOrigin::Found(found.to_string());
+            return Ok(found.to_string());
+        }
+    };
+    Ok(format!(
+        "scene box {}, {why}",
+        box_text(dataset.scene_min, dataset.scene_max)
+    ))
+}
+
+/// A box as `[xmin, ymin, zmin] .. [xmax, ymax, zmax]` (millimetre precision).
+pub fn box_text(min: [f32; 3], max: [f32; 3]) -> String {
+    format!(
+        "[{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]",
+        min[0], min[1], min[2], max[0], max[1], max[2]
+    )
+}
+
+/// Parse a box typed as `xmin,ymin,zmin,xmax,ymax,zmax`: six finite numbers, each min below
+/// its max.
+pub fn parse_box(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), String> {
+    let values: Vec<f32> = text
+        .split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("`{}` is not a number", v.trim()))
+        })
+        .collect::<std::result::Result<_, _>>()?;
+    let [x0, y0, z0, x1, y1, z1] = values[..] else {
+        return Err(format!(
+            "expected six numbers xmin,ymin,zmin,xmax,ymax,zmax, found {}",
+            values.len()
+        ));
+    };
+    let (min, max) = ([x0, y0, z0], [x1, y1, z1]);
+    for axis in 0..3 {
+        if !(min[axis].is_finite() && max[axis].is_finite()) {
+            return Err("every number must be finite".into());
+        }
+        if min[axis] >= max[axis] {
+            return Err(format!(
+                "{} min {} is not below its max {}",
+                ["x", "y", "z"][axis],
+                min[axis],
+                max[axis]
+            ));
+        }
+    }
+    Ok((min, max))
 }
 
 fn view_of(frame: &Frame) -> View {
@@ -536,5 +632,69 @@ mod tests {
         assert_eq!(find_scene_box(&parallel), Err(BoxError::NoFocus));
         let message = BoxError::EmptyHull.to_string();
         assert!(message.starts_with("cannot find a scene box"), "{message}");
+    }
+
+    #[test]
+    fn the_stated_box_wins_then_the_datas_then_the_found_one() {
+        let (lo, hi) = (Vec3::new(-0.4, -0.3, -0.2), Vec3::new(0.5, 0.3, 0.25));
+        let dataset = |origin: SceneBoxOrigin| Dataset {
+            source: "set".into(),
+            frames: box_frames(lo, hi, Vec3::ZERO, 4.0, 40, true),
+            scene_min: [-1.0; 3],
+            scene_max: [1.0; 3],
+            scene_box: origin,
+            background: [0.0; 3],
+        };
+        let all: Vec<usize> = (0..40).collect();
+        let stated = StatedBox {
+            min: [-2.0; 3],
+            max: [2.0, 3.0, 4.0],
+            by: "--scene-box".into(),
+        };
+        for origin in [
+            SceneBoxOrigin::Unknown,
+            SceneBoxOrigin::Data("truth.json".into()),
+        ] {
+            let mut set = dataset(origin);
+            let line = choose_scene_box(&mut set, Some(stated.clone()), &all).unwrap();
+            assert_eq!((set.scene_min, set.scene_max), (stated.min, stated.max));
+            assert!(line.contains("given by --scene-box"), "{line}");
+        }
+        let mut known = dataset(SceneBoxOrigin::Data("truth.json".into()));
+        let line = choose_scene_box(&mut known, None, &all).unwrap();
+        assert_eq!((known.scene_min, known.scene_max), ([-1.0; 3], [1.0; 3]));
+        assert!(line.contains("from truth.json"), "{line}");
+        let mut unknown = dataset(SceneBoxOrigin::Unknown);
+        let line = choose_scene_box(&mut unknown, None, &all).unwrap();
+        assert!(line.contains("found from the masks"), "{line}");
+        assert!(matches!(unknown.scene_box, SceneBoxOrigin::Found(_)));
+        for axis in 0..3 {
+            assert!(unknown.scene_min[axis] <= lo[axis] && unknown.scene_max[axis] >= hi[axis]);
+        }
+        // Nothing to find it from: the error says how to state it.
+        let mut empty = dataset(SceneBoxOrigin::Unknown);
+        let error = choose_scene_box(&mut empty, None, &[])
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("--scene-box"), "{error}");
+    }
+
+    #[test]
+    fn a_typed_box_is_six_finite_numbers_each_min_below_its_max() {
+        assert_eq!(
+            parse_box("-1,-2,-3,1,2,3.5"),
+            Ok(([-1.0, -2.0, -3.0], [1.0, 2.0, 3.5]))
+        );
+        for (text, reason) in [
+            ("1,2,3", "six numbers"),
+            ("0,0,0,1,1,x", "`x` is not a number"),
+            ("0,0,0,1,inf,1", "finite"),
+            ("0,0,NaN,1,1,1", "finite"),
+            ("0,0,0,1,0,1", "y min 0 is not below its max 0"),
+            ("2,0,0,1,1,1", "x min 2"),
+        ] {
+            let error = parse_box(text).unwrap_err();
+            assert!(error.contains(reason), "{text}: {error}");
+        }
     }
 }

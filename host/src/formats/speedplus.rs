@@ -13,7 +13,7 @@
 
 use super::json::{JsonFile, write_json};
 use super::resample::{Distortion, Resampler};
-use crate::dataset::{Dataset, Frame};
+use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use orbit_nerf_core::glam::{Quat, Vec3};
 use orbit_nerf_core::{Camera, Pose};
@@ -21,10 +21,6 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-
-/// Box (body frame, metres) holding TANGO when no `truth.json` gives the target's box: the extents
-/// of the 11 SPEED+ devkit landmarks (about 1.09 x 1.07 x 0.32 m) plus about 10 % margin.
-pub const TANGO_SCENE_BOX: ([f32; 3], [f32; 3]) = ([-0.60, -0.64, -0.20], [0.60, 0.55, 0.20]);
 
 /// How far a label quaternion's norm may stray from 1 before it is rejected as non-unit.
 const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
@@ -462,6 +458,36 @@ impl Truth {
     pub fn write(&self, path: &Path) -> Result<()> {
         write_json(path, self)
     }
+
+    /// The exact pose of every label, paired by filename (a truth file may list its frames in
+    /// any order, and more frames than the labels); `path` names the truth file in errors.
+    pub fn poses_for(&self, path: &Path, labels: &[Label]) -> Result<Vec<Pose>> {
+        let by_name: std::collections::HashMap<&str, &TruthFrame> = self
+            .frames
+            .iter()
+            .map(|frame| (frame.filename.as_str(), frame))
+            .collect();
+        labels
+            .iter()
+            .map(|label| {
+                let frame = by_name.get(label.filename.as_str()).ok_or_else(|| {
+                    HostError::field(
+                        path,
+                        "frames",
+                        format!("no frame named `{}` (a label names it)", label.filename),
+                    )
+                })?;
+                // Checked when the file was read.
+                frame.label().pose().ok_or_else(|| {
+                    HostError::field(
+                        path,
+                        "frames",
+                        format!("`{}`: not a valid pose", label.filename),
+                    )
+                })
+            })
+            .collect()
+    }
 }
 
 /// Choices made while loading.
@@ -490,6 +516,22 @@ pub struct SpeedPlusSet {
     pub label_file: PathBuf,
 }
 
+impl SpeedPlusSet {
+    /// The exact pose of every frame (in frame order, paired by filename), when the set has a
+    /// truth file.
+    pub fn true_poses(&self) -> Result<Option<Vec<Pose>>> {
+        let Some(truth) = &self.truth else {
+            return Ok(None);
+        };
+        let path = self
+            .label_file
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join("truth.json");
+        truth.poses_for(&path, &self.labels).map(Some)
+    }
+}
+
 /// Load a SPEED+ / SHIRT / simulator set from a label file or a folder (see the module docs).
 pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
     let reader = SpeedPlusReader::open(path, options)?;
@@ -500,13 +542,23 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
         .into_par_iter()
         .map(|index| reader.frame(index))
         .collect::<Result<Vec<_>>>()?;
-    let (scene_min, scene_max) = reader.scene_box();
+    let ((scene_min, scene_max), scene_box) = match reader.scene_box() {
+        Some(found) => (
+            found,
+            SceneBoxOrigin::Data(format!(
+                "{} (exact)",
+                reader.label_file.with_file_name("truth.json").display()
+            )),
+        ),
+        None => (([0.0; 3], [0.0; 3]), SceneBoxOrigin::Unknown),
+    };
     Ok(SpeedPlusSet {
         dataset: Dataset {
             source: path.to_path_buf(),
             frames,
             scene_min,
             scene_max,
+            scene_box,
             background: [0.0; 3],
         },
         labels,
@@ -573,12 +625,12 @@ impl SpeedPlusReader {
         self.labels.root.as_array().map_or(&[], Vec::as_slice)
     }
 
-    /// The scene box: the target's from `truth.json`, else TANGO's.
-    pub fn scene_box(&self) -> ([f32; 3], [f32; 3]) {
-        match &self.truth {
-            Some(truth) => (truth.target_box_min, truth.target_box_max),
-            None => TANGO_SCENE_BOX,
-        }
+    /// The scene box of the target from `truth.json`; `None` without one (the target is
+    /// unknown: its box must be stated or found from the frames).
+    pub fn scene_box(&self) -> Option<([f32; 3], [f32; 3])> {
+        self.truth
+            .as_ref()
+            .map(|truth| (truth.target_box_min, truth.target_box_max))
     }
 
     /// The checked label of frame `index`.
@@ -877,10 +929,7 @@ mod tests {
                 frame.pixels[0]
             );
             assert!(frame.mask.is_none() && set.truth.is_none());
-            assert_eq!(
-                (set.dataset.scene_min, set.dataset.scene_max),
-                TANGO_SCENE_BOX
-            );
+            assert_eq!(set.dataset.scene_box, SceneBoxOrigin::Unknown);
         }
     }
 
@@ -1009,6 +1058,52 @@ mod tests {
                 }
                 other => panic!("{expected_field}: {other:?}"),
             }
+        }
+    }
+
+    #[test]
+    fn truth_pairs_with_labels_by_filename_and_must_cover_them() {
+        let label = |name: &str, angle: f32| {
+            Label::new(
+                name.into(),
+                Quat::from_rotation_y(angle),
+                Vec3::new(0.0, 0.0, 5.0),
+            )
+        };
+        let labels = vec![
+            label("a.png", 0.1),
+            label("b.png", 0.7),
+            label("c.png", 1.3),
+        ];
+        let truth_frame = |l: &Label| TruthFrame {
+            filename: l.filename.clone(),
+            q_vbs2tango_true: l.q_vbs2tango,
+            r_vo2to_vbs_true: l.r_vo2to_vbs,
+            sun_direction_body: [1.0, 0.0, 0.0],
+            exposure: 1.0,
+        };
+        // Listed in another order, with one frame the labels do not name.
+        let mut truth = Truth {
+            target_box_min: [-1.0; 3],
+            target_box_max: [1.0; 3],
+            frames: [2, 0, 1].iter().map(|&i| truth_frame(&labels[i])).collect(),
+        };
+        truth.frames.push(truth_frame(&label("extra.png", 2.0)));
+        let path = Path::new("set/truth.json");
+        let poses = truth.poses_for(path, &labels).unwrap();
+        let expected: Vec<Pose> = labels.iter().map(|l| l.pose().unwrap()).collect();
+        assert_eq!(poses, expected);
+        truth.frames.retain(|f| f.filename != "b.png");
+        match truth.poses_for(path, &labels) {
+            Err(HostError::Field {
+                file,
+                field,
+                reason,
+            }) => {
+                assert_eq!((file.as_path(), field.as_str()), (path, "frames"));
+                assert!(reason.contains("b.png"), "{reason}");
+            }
+            other => panic!("{other:?}"),
         }
     }
 

@@ -27,8 +27,10 @@ use std::time::{Duration, Instant};
 pub struct SourceInfo {
     /// Where the frames come from, for messages.
     pub name: String,
-    pub scene_min: [f32; 3],
-    pub scene_max: [f32; 3],
+    /// The box (world units) that holds the scene; `None` when the source cannot know it (a
+    /// SPEED+ folder without `truth.json`: the stream sees one frame at a time, too few to
+    /// find it, so the user states it).
+    pub scene_box: Option<([f32; 3], [f32; 3])>,
     pub background: [f32; 3],
     /// Pixels of the largest frame.
     pub max_pixels: usize,
@@ -114,8 +116,10 @@ impl DatasetSource {
                 let reader = SyntheticReader::open(&json, &options)?;
                 let info = SourceInfo {
                     name,
-                    scene_min: nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
-                    scene_max: nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
+                    scene_box: Some((
+                        nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
+                        nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
+                    )),
                     background: SYNTHETIC_BACKGROUND,
                     max_pixels: reader.output_pixels(),
                     frames: Some(reader.len() as u64),
@@ -128,11 +132,9 @@ impl DatasetSource {
                     domain: None,
                 };
                 let reader = SpeedPlusReader::open(path, &options)?;
-                let (scene_min, scene_max) = reader.scene_box();
                 let info = SourceInfo {
                     name,
-                    scene_min,
-                    scene_max,
+                    scene_box: reader.scene_box(),
                     background: [0.0; 3],
                     max_pixels: reader.decoder.output_camera().pixel_count(),
                     frames: Some(reader.len() as u64),
@@ -199,11 +201,9 @@ impl<'s> SimulatorSource<'s> {
     pub fn new(scene: &'s Scene) -> Result<SimulatorSource<'s>> {
         let simulator = FrameSimulator::new(scene)?;
         let decoder = FrameDecoder::new(simulator.camera_file().clone(), None);
-        let (scene_min, scene_max) = simulator.scene_box();
         let info = SourceInfo {
             name: format!("simulated {}", scene.origin.display()),
-            scene_min,
-            scene_max,
+            scene_box: Some(simulator.scene_box()),
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: Some(scene.spec.frames as u64),
@@ -303,21 +303,20 @@ pub struct WatchedFolder {
 
 impl WatchedFolder {
     /// Open `dir` (its `camera.json` must be there), resizing frames to `width`. The scene box
-    /// is TANGO's unless the folder has a simulator `truth.json`.
+    /// is known only when the folder has a simulator `truth.json`.
     pub fn open(dir: &Path, width: Option<u32>, options: WatchOptions) -> Result<WatchedFolder> {
         let camera = SpeedCamera::read(&dir.join("camera.json"))?;
         let decoder = FrameDecoder::new(camera, width);
         let truth = dir.join("truth.json");
-        let (scene_min, scene_max) = if truth.is_file() {
+        let scene_box = if truth.is_file() {
             let truth = speedplus::Truth::read(&truth)?;
-            (truth.target_box_min, truth.target_box_max)
+            Some((truth.target_box_min, truth.target_box_max))
         } else {
-            speedplus::TANGO_SCENE_BOX
+            None
         };
         let info = SourceInfo {
             name: dir.display().to_string(),
-            scene_min,
-            scene_max,
+            scene_box,
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: None,
