@@ -400,7 +400,7 @@ fn bad_scene_files_name_the_file_and_the_field() {
         (
             "missing_mesh",
             base.replace(
-                "model = \"tango\"\nlandmarks = \"../shared/data/speedplus/landmarks.csv\"",
+                "model = \"tango\"\nlandmarks = \"tango-landmarks.csv\"",
                 "model = \"mesh\"\npath = \"no/such/mesh.obj\"",
             )
             .replace(

@@ -67,7 +67,8 @@ fn stream_api(
             store,
             Replacement::Novelty,
             settings().steps_per_frame,
-        );
+        )
+        .unwrap();
         let state = StreamState::new(settings(), store as usize, source.info());
         (config, state, None)
     };

@@ -9,6 +9,7 @@ pub mod io;
 pub mod memory;
 pub mod metrics;
 pub mod report;
+pub mod scene_box;
 pub mod sim;
 pub mod stream;
 pub mod train;

@@ -38,6 +38,58 @@ pub fn read_config(path: &Path) -> Result<Config> {
     Ok(config)
 }
 
+/// The scene box a config file sets (`aabb_min` and `aabb_max`, at the top level or in a
+/// `[config]` table), `None` when it sets none. A box the user wrote in a config file wins over
+/// the data's own (see [`crate::scene_box::choose_scene_box`]).
+pub fn config_scene_box(path: &Path) -> Result<Option<([f32; 3], [f32; 3])>> {
+    let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+    let table: toml::Table = toml::from_str(&text)
+        .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
+    let table = match table.get("config") {
+        Some(toml::Value::Table(inner)) => inner,
+        _ => &table,
+    };
+    let corner = |key: &str| -> Result<Option<[f32; 3]>> {
+        table
+            .get(key)
+            .map(|value| {
+                value
+                    .clone()
+                    .try_into::<[f32; 3]>()
+                    .ok()
+                    .filter(|c| c.iter().all(|v| v.is_finite()))
+                    .ok_or_else(|| HostError::field(path, key, "expected three finite numbers"))
+            })
+            .transpose()
+    };
+    match (corner("aabb_min")?, corner("aabb_max")?) {
+        (Some(min), Some(max)) => {
+            if let Some(axis) = (0..3).find(|&a| min[a] >= max[a]) {
+                return Err(HostError::field(
+                    path,
+                    "aabb_min",
+                    format!(
+                        "axis {axis}: {} is not below aabb_max's {}",
+                        min[axis], max[axis]
+                    ),
+                ));
+            }
+            Ok(Some((min, max)))
+        }
+        (None, None) => Ok(None),
+        (Some(_), None) => Err(HostError::field(
+            path,
+            "aabb_max",
+            "missing (aabb_min is set)",
+        )),
+        (None, Some(_)) => Err(HostError::field(
+            path,
+            "aabb_min",
+            "missing (aabb_max is set)",
+        )),
+    }
+}
+
 pub fn config_to_toml(config: &Config) -> String {
     toml::to_string(config).unwrap_or_default()
 }
@@ -297,4 +349,39 @@ pub fn view_metrics(dataset: &Dataset, scores: &[ViewScore]) -> Result<Vec<ViewM
             .map_err(|e| HostError::invalid(&frame.name, e.to_string()))
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_config_file_sets_the_box_only_when_it_names_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("config.toml");
+        type Expected = std::result::Result<Option<([f32; 3], [f32; 3])>, &'static str>;
+        let cases: [(&str, Expected); 5] = [
+            ("steps = 10\n", Ok(None)),
+            (
+                "[config]\naabb_min = [-1, -2, -3]\naabb_max = [1, 2, 3]\n",
+                Ok(Some(([-1.0, -2.0, -3.0], [1.0, 2.0, 3.0]))),
+            ),
+            ("aabb_min = [-1, -2, -3]\n", Err("aabb_max")),
+            (
+                "aabb_min = [1, 0, 0]\naabb_max = [1, 1, 1]\n",
+                Err("aabb_min"),
+            ),
+            ("aabb_min = [0, 0]\naabb_max = [1, 1, 1]\n", Err("aabb_min")),
+        ];
+        for (text, expected) in cases {
+            std::fs::write(&path, text).unwrap();
+            match (config_scene_box(&path), expected) {
+                (Ok(found), Ok(expected)) => assert_eq!(found, expected, "{text}"),
+                (Err(HostError::Field { field, .. }), Err(expected)) => {
+                    assert_eq!(field, expected, "{text}")
+                }
+                (other, _) => panic!("{text}: {other:?}"),
+            }
+        }
+    }
 }

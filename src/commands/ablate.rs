@@ -1,7 +1,7 @@
 //! `orbit-nerf ablate`: the paper's ablation (baseline, + appearance, + appearance and pose
 //! correction on one scene) and its pose-noise sweep on the `synthetic` preset.
 
-use super::{FIT_STEPS, Fallible};
+use super::{FIT_STEPS, Fallible, SceneBox, choose_box, parse_scene_box};
 use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{self, APPEARANCE, APPEARANCE_POSE, BASELINE, VariantResult};
 use orbit_nerf_host::dataset::{Dataset, split_every};
@@ -57,6 +57,10 @@ pub struct AblateArgs {
     pub threads: usize,
     #[arg(long, default_value = "runs/ablate")]
     pub out: PathBuf,
+    /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax (wins over a config file's box,
+    /// truth.json's and the box found from the data).
+    #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
+    pub scene_box: Option<SceneBox>,
 }
 
 /// The paper's rotation sweep: rotation noise on the labels, in degrees (exact positions).
@@ -100,12 +104,7 @@ fn load(path: &Path, size: u16) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
             domain: None,
         },
     )?;
-    let truth = set.truth.and_then(|t| {
-        t.frames
-            .iter()
-            .map(|f| f.label().pose())
-            .collect::<Option<Vec<_>>>()
-    });
+    let truth = set.true_poses()?;
     Ok((set.dataset, truth))
 }
 
@@ -128,7 +127,7 @@ fn base_config(args: &AblateArgs) -> Fallible<Config> {
 }
 
 fn ablate(args: &AblateArgs) -> Fallible<()> {
-    let (dataset, truth) = match &args.data {
+    let (mut dataset, truth) = match &args.data {
         Some(path) => load(path, args.size)?,
         None => simulated(
             &args.scene,
@@ -140,6 +139,12 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
     let base = base_config(args)?;
+    choose_box(
+        &mut dataset,
+        args.scene_box,
+        args.config.as_deref(),
+        &train_idx,
+    )?;
     let mut results: Vec<VariantResult> = Vec::new();
     for variant in [BASELINE, APPEARANCE, APPEARANCE_POSE] {
         println!(

@@ -1,6 +1,6 @@
 //! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed.
 
-use super::{CliResult, DataArgs, open_dataset, with_trainer};
+use super::{CliResult, DataArgs, choose_box, open_dataset, with_trainer};
 use clap::Args;
 use orbit_nerf_core::Config;
 use orbit_nerf_host::train::{self, RayonExecutor};
@@ -33,11 +33,12 @@ pub fn run(args: &BenchArgs) -> CliResult {
         size: args.size,
         holdout: 8,
     };
-    let (dataset, train_idx, _) = open_dataset(&data)?;
+    let (mut dataset, train_idx, _) = open_dataset(&data)?;
     let mut base = match &args.config {
         Some(path) => train::read_config(path)?,
         None => Config::DEFAULT,
     };
+    choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
     base.steps = args.warmup + args.steps;
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();

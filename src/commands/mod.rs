@@ -16,9 +16,10 @@ use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset, Frame};
 use orbit_nerf_host::formats;
+use orbit_nerf_host::scene_box::{self, StatedBox};
 use orbit_nerf_host::train::{
-    RayonExecutor, ViewScore, checkpoint_config, evaluate, load_frames, read_config,
-    restore_checkpoint,
+    RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
+    read_config, restore_checkpoint,
 };
 use std::path::{Path, PathBuf};
 
@@ -63,6 +64,45 @@ struct ModelArgs {
     /// Evaluation: steps fitting a held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     fit_steps: u32,
+    /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax in world units (wins over a config
+    /// file's box, truth.json's and the box found from the data).
+    #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
+    scene_box: Option<SceneBox>,
+}
+
+/// A scene box as min and max corners.
+type SceneBox = ([f32; 3], [f32; 3]);
+
+fn parse_scene_box(text: &str) -> Result<SceneBox, String> {
+    scene_box::parse_box(text)
+}
+
+/// Set `dataset`'s scene box by the rule (`--scene-box`, else a config file that sets one,
+/// else the data's own, else found from the training views) and print it and why.
+fn choose_box(
+    dataset: &mut Dataset,
+    flag: Option<SceneBox>,
+    config: Option<&Path>,
+    train_idx: &[usize],
+) -> CliResult {
+    let stated = match (flag, config) {
+        (Some((min, max)), _) => Some(StatedBox {
+            min,
+            max,
+            by: "--scene-box".into(),
+        }),
+        (None, Some(path)) => config_scene_box(path)?.map(|(min, max)| StatedBox {
+            min,
+            max,
+            by: format!("the config file {}", path.display()),
+        }),
+        (None, None) => None,
+    };
+    println!(
+        "{}",
+        scene_box::choose_scene_box(dataset, stated, train_idx)?
+    );
+    Ok(())
 }
 
 /// Default steps fitting a held-out view's appearance embedding.

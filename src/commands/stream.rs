@@ -2,11 +2,12 @@
 //! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
-use super::{FIT_STEPS, Fallible, bar_style};
+use super::{FIT_STEPS, Fallible, SceneBox, bar_style, parse_scene_box};
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::ablation::APPEARANCE_POSE;
 use orbit_nerf_host::report::ViewMetrics;
+use orbit_nerf_host::scene_box::box_text;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
     self, Control, DatasetSource, Event, Fate, FrameSource, Outcome, SimulatorSource,
@@ -82,6 +83,10 @@ pub struct StreamArgs {
     /// Stop (and checkpoint) after this many arrivals, as Ctrl-C would; resume with --resume.
     #[arg(long)]
     pub stop_after: Option<u64>,
+    /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax (wins over a config file's box and
+    /// truth.json's; needed for a SPEED+ folder without truth.json).
+    #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
+    pub scene_box: Option<SceneBox>,
     /// Continue the stream saved in OUT/checkpoint.onrf (same source; its config and
     /// settings are used).
     #[arg(long, conflicts_with = "force")]
@@ -179,13 +184,33 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         stream::check_fresh_start(&checkpoint_path, args.force)?;
         let mut info = source.info().clone();
         info.frames = info.frames.or(args.max_frames);
+        let base = model_config(args)?;
+        let config_box = match &args.config {
+            Some(path) => train::config_scene_box(path)?
+                .map(|b| (b, format!("the config file {}", path.display()))),
+            None => None,
+        };
+        // The rule of `choose_box`, less finding: a stream sees one frame at a time.
+        if let Some((stated, by)) = args
+            .scene_box
+            .map(|b| (b, "--scene-box".to_owned()))
+            .or(config_box)
+        {
+            info.scene_box = Some(stated);
+            println!("scene box {}, given by {by}", box_text(stated.0, stated.1));
+        } else if let Some(known) = info.scene_box {
+            println!(
+                "scene box {}, from the source (truth.json or the format)",
+                box_text(known.0, known.1)
+            );
+        }
         let config = stream::stream_config(
-            &model_config(args)?,
+            &base,
             &info,
             args.store,
             args.policy.into(),
             args.steps_per_frame,
-        );
+        )?;
         let settings = StreamSettings {
             steps_per_frame: args.steps_per_frame,
             holdout_every: args.holdout,

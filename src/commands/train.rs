@@ -2,8 +2,8 @@
 //! views.
 
 use super::{
-    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, bar_style, model_config, open_dataset,
-    print_scores, with_trainer,
+    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, bar_style, choose_box, model_config,
+    open_dataset, print_scores, with_trainer,
 };
 use clap::Args;
 use indicatif::ProgressBar;
@@ -28,8 +28,14 @@ pub struct TrainArgs {
 
 pub fn run(args: &TrainArgs) -> CliResult {
     orbit_nerf_host::io::check_output_folder(&args.out)?;
-    let (dataset, train_idx, test_idx) = open_dataset(&args.data)?;
+    let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;
     let base = model_config(&args.model)?;
+    choose_box(
+        &mut dataset,
+        args.model.scene_box,
+        args.model.config.as_deref(),
+        &train_idx,
+    )?;
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let executor = RayonExecutor::new(args.model.threads)?;
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();

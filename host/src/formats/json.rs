@@ -13,7 +13,12 @@ use std::path::{Path, PathBuf};
 /// so the number check names the field that holds one.
 pub(crate) fn read_json(path: &Path) -> Result<Value> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    serde_json::from_str(&quote_non_finite_literals(&text))
+    parse_json(path, &text)
+}
+
+/// [`read_json`] on the text of the file `path` names.
+pub(crate) fn parse_json(path: &Path, text: &str) -> Result<Value> {
+    serde_json::from_str(&quote_non_finite_literals(text))
         .map_err(|e| HostError::invalid(path, format!("malformed JSON: {e}")))
 }
 
@@ -34,7 +39,19 @@ pub(crate) struct JsonFile {
 impl JsonFile {
     /// A file whose top level is an object.
     pub(crate) fn read(path: &Path) -> Result<JsonFile> {
-        let json = JsonFile::read_any(path)?;
+        JsonFile::object(JsonFile::read_any(path)?)
+    }
+
+    /// [`JsonFile::read`] on the text of the file `path` names.
+    pub(crate) fn parse(path: &Path, text: &str) -> Result<JsonFile> {
+        JsonFile::object(JsonFile {
+            path: path.to_path_buf(),
+            root: parse_json(path, text)?,
+        })
+    }
+
+    fn object(json: JsonFile) -> Result<JsonFile> {
+        let path = &json.path;
         if !json.root.is_object() {
             return Err(HostError::invalid(
                 path,

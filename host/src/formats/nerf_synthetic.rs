@@ -4,7 +4,7 @@
 
 use super::json::JsonFile;
 use super::transforms::{FrameJob, Intrinsics, LoadOptions, decode_all, decode_frame, output_size};
-use crate::dataset::{Dataset, Frame};
+use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use std::path::{Path, PathBuf};
 
@@ -57,6 +57,7 @@ pub fn load_nerf_synthetic_transforms(json_path: &Path, options: &LoadOptions) -
         frames,
         scene_min: NERF_SYNTHETIC_SCENE_MIN,
         scene_max: NERF_SYNTHETIC_SCENE_MAX,
+        scene_box: SceneBoxOrigin::Data("the NeRF-synthetic convention".into()),
         background: options.background,
     })
 }

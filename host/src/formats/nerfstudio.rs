@@ -5,7 +5,7 @@
 
 use super::json::JsonFile;
 use super::transforms::{FrameJob, Intrinsics, LoadOptions, decode_all};
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use glam::{DMat3, DVec3, Vec3};
 use std::path::Path;
@@ -97,12 +97,18 @@ pub fn load_nerfstudio(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         });
         frame_intrinsics.push(intrinsics);
     }
-    let (scene_min, scene_max) = match ["aabb", "scene_box"]
+    let ((scene_min, scene_max), scene_box) = match ["aabb", "scene_box"]
         .into_iter()
         .find(|key| json.root.get(key).is_some())
     {
-        Some(key) => json.scene_box(key)?,
-        None => box_around_focus(&jobs).map_err(|reason| HostError::invalid(&json_path, reason))?,
+        Some(key) => (
+            json.scene_box(key)?,
+            SceneBoxOrigin::Data(format!("`{key}` in {}", json_path.display())),
+        ),
+        None => (
+            box_around_focus(&jobs).map_err(|reason| HostError::invalid(&json_path, reason))?,
+            SceneBoxOrigin::Data("the cameras' common focus (no aabb in the file)".into()),
+        ),
     };
     let decoded = decode_all(&jobs, options)?;
     let frames = jobs
@@ -116,6 +122,7 @@ pub fn load_nerfstudio(path: &Path, options: &LoadOptions) -> Result<Dataset> {
         frames,
         scene_min,
         scene_max,
+        scene_box,
         background: options.background,
     })
 }

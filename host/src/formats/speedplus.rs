@@ -13,7 +13,7 @@
 
 use super::json::{JsonFile, write_json};
 use super::resample::{Distortion, Resampler};
-use crate::dataset::{Dataset, Frame};
+use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use orbit_nerf_core::glam::{Quat, Vec3};
 use orbit_nerf_core::{Camera, Pose};
@@ -21,10 +21,6 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-
-/// Box (body frame, metres) holding TANGO when no `truth.json` gives the target's box: the extents
-/// of the 11 SPEED+ devkit landmarks (about 1.09 x 1.07 x 0.32 m) plus about 10 % margin.
-pub const TANGO_SCENE_BOX: ([f32; 3], [f32; 3]) = ([-0.60, -0.64, -0.20], [0.60, 0.55, 0.20]);
 
 /// How far a label quaternion's norm may stray from 1 before it is rejected as non-unit.
 const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
@@ -138,34 +134,72 @@ fn first_key<'a>(entry: &'a Value, keys: &[&'static str]) -> Option<(&'static st
         .find_map(|&key| entry.get(key).map(|value| (key, value)))
 }
 
-/// The SPEED+ camera file (`camera.json`): sensor size, pixel pitch, focal lengths in metres,
-/// principal point, the pixel camera matrix and OpenCV distortion `[k1, k2, p1, p2, k3]`.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+/// The SPEED+ camera file (`camera.json`): image size, the pixel camera matrix, OpenCV
+/// distortion `[k1, k2, p1, p2, k3]`, and the pixel pitch when the file gives one.
+///
+/// Layouts read (they load to the same camera):
+/// - SPEED+ / SHIRT: `Nu`, `Nv`, `ppx`/`ppy` (pixel pitch, m), `fx`/`fy` (focal lengths, m),
+///   `ccx`/`ccy` (principal point, px), `cameraMatrix`, `distCoeffs`;
+/// - `Nu`, `Nv` and `cameraMatrix` alone (plus `distCoeffs`);
+/// - `Nu`, `Nv`, `fx`/`fy`/`ccx`/`ccy` in pixels (no pitch, no matrix).
+///
+/// When a file gives the same quantity twice (matrix and focal lengths), they must agree.
+/// Written in the SPEED+ layout (the metre fields only when the pitch is known).
+#[derive(Clone, Debug, PartialEq)]
 pub struct SpeedCamera {
-    #[serde(rename = "Nu")]
     pub width: u32,
-    #[serde(rename = "Nv")]
     pub height: u32,
-    /// Pixel pitch in metres.
-    pub ppx: f64,
-    pub ppy: f64,
-    /// Focal lengths in metres (`fx / ppx` is the focal length in pixels).
-    pub fx: f64,
-    pub fy: f64,
-    pub ccx: f64,
-    pub ccy: f64,
-    #[serde(rename = "cameraMatrix")]
+    /// Pixel pitch in metres (`ppx`, `ppy`), when the file gives it.
+    pub pixel_pitch: Option<[f64; 2]>,
     pub camera_matrix: [[f64; 3]; 3],
-    #[serde(rename = "distCoeffs")]
     pub dist_coeffs: [f64; 5],
 }
 
+/// How far a focal length given twice may disagree (relative), and a principal point (pixels).
+const FOCAL_AGREEMENT: f64 = 1e-3;
+const CENTRE_AGREEMENT_PX: f64 = 0.5;
+
+/// The file layout of [`SpeedCamera`].
+#[derive(Serialize)]
+struct SpeedCameraFile {
+    #[serde(rename = "Nu")]
+    width: u32,
+    #[serde(rename = "Nv")]
+    height: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    ppx: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    ppy: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    fx: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    fy: Option<f64>,
+    ccx: f64,
+    ccy: f64,
+    #[serde(rename = "cameraMatrix")]
+    camera_matrix: [[f64; 3]; 3],
+    #[serde(rename = "distCoeffs")]
+    dist_coeffs: [f64; 5],
+}
+
 impl SpeedCamera {
-    /// Read and check a camera file; `distCoeffs` may be absent (no distortion).
+    /// Read and check a camera file in any of the layouts above; `distCoeffs` may be absent
+    /// (no distortion).
     pub fn read(path: &Path) -> Result<SpeedCamera> {
-        let json = JsonFile::read(path)?;
+        SpeedCamera::from_json(JsonFile::read(path)?)
+    }
+
+    /// [`SpeedCamera::read`] on the text of the file `path` names.
+    pub fn parse(path: &Path, text: &str) -> Result<SpeedCamera> {
+        SpeedCamera::from_json(JsonFile::parse(path, text)?)
+    }
+
+    fn from_json(json: JsonFile) -> Result<SpeedCamera> {
+        let path = json.path.as_path();
         let value = &json.root;
-        let number = |key: &str| json.number(json.get(value, key, key)?, key);
+        let optional = |key: &str| -> Result<Option<f64>> {
+            value.get(key).map(|v| json.positive(v, key)).transpose()
+        };
         let size = |key: &str| -> Result<u32> {
             value
                 .get(key)
@@ -176,28 +210,118 @@ impl SpeedCamera {
                     HostError::field(path, key, "missing or not an image size in 1..=65535")
                 })
         };
-        let rows = value
-            .get("cameraMatrix")
-            .and_then(Value::as_array)
-            .filter(|rows| rows.len() == 3)
-            .ok_or_else(|| HostError::field(path, "cameraMatrix", "expected a 3x3 matrix"))?;
-        let mut camera_matrix = [[0.0; 3]; 3];
-        for (r, (out, row)) in camera_matrix.iter_mut().zip(rows).enumerate() {
-            *out = json.numbers_exact(row, &format!("cameraMatrix[{r}]"))?;
-        }
+        let (width, height) = (size("Nu")?, size("Nv")?);
+        let pixel_pitch = match (optional("ppx")?, optional("ppy")?) {
+            (Some(x), Some(y)) => Some([x, y]),
+            (None, None) => None,
+            (Some(_), None) => return Err(HostError::field(path, "ppy", "missing (ppx is given)")),
+            (None, Some(_)) => return Err(HostError::field(path, "ppx", "missing (ppy is given)")),
+        };
+        let matrix = match value.get("cameraMatrix") {
+            Some(rows) => Some(read_camera_matrix(&json, rows)?),
+            None => None,
+        };
+        // The focal lengths in pixels from `fx`/`fy`: metres over the pitch when it is given.
+        let focal = |key: &str, axis: usize| -> Result<Option<f64>> {
+            let Some(f) = optional(key)? else {
+                return Ok(None);
+            };
+            match pixel_pitch {
+                Some(pitch) => Ok(Some(f / pitch[axis])),
+                None if matrix.is_none() && f < 1.0 => Err(HostError::field(
+                    path,
+                    key,
+                    format!(
+                        "{f} is under one pixel: a focal length in metres needs the pixel \
+                         pitch (ppx, ppy) or a cameraMatrix"
+                    ),
+                )),
+                // With a matrix and no pitch, `fx` is read in pixels only if it looks like
+                // pixels; metres without a pitch cannot be checked, so they are left out.
+                None if f < 1.0 => Ok(None),
+                None => Ok(Some(f)),
+            }
+        };
+        let (fx, fy) = (focal("fx", 0)?, focal("fy", 1)?);
+        let centre = |key: &str| -> Result<Option<f64>> {
+            value.get(key).map(|v| json.number(v, key)).transpose()
+        };
+        let (ccx, ccy) = (centre("ccx")?, centre("ccy")?);
+        let camera_matrix = match matrix {
+            Some(k) => {
+                let given = [
+                    (
+                        "fx",
+                        fx,
+                        k[0][0],
+                        FOCAL_AGREEMENT * k[0][0].abs(),
+                        "cameraMatrix[0][0]",
+                    ),
+                    (
+                        "fy",
+                        fy,
+                        k[1][1],
+                        FOCAL_AGREEMENT * k[1][1].abs(),
+                        "cameraMatrix[1][1]",
+                    ),
+                    (
+                        "ccx",
+                        ccx,
+                        k[0][2],
+                        CENTRE_AGREEMENT_PX,
+                        "cameraMatrix[0][2]",
+                    ),
+                    (
+                        "ccy",
+                        ccy,
+                        k[1][2],
+                        CENTRE_AGREEMENT_PX,
+                        "cameraMatrix[1][2]",
+                    ),
+                ];
+                for (key, value, expected, tolerance, matrix_field) in given {
+                    if let Some(value) = value.filter(|v| (v - expected).abs() > tolerance) {
+                        let unit = if key.starts_with('f') && pixel_pitch.is_some() {
+                            " px (metres over the pixel pitch)"
+                        } else {
+                            " px"
+                        };
+                        return Err(HostError::field(
+                            path,
+                            key,
+                            format!("gives {value:.4}{unit}, but {matrix_field} is {expected:.4}"),
+                        ));
+                    }
+                }
+                k
+            }
+            None => {
+                if fx.is_none() && fy.is_none() && ccx.is_none() && ccy.is_none() {
+                    return Err(HostError::field(
+                        path,
+                        "cameraMatrix",
+                        "missing: give cameraMatrix, or fx/fy/ccx/ccy in pixels, or fx/fy in \
+                         metres with ppx/ppy and ccx/ccy",
+                    ));
+                }
+                let need = |key: &str, v: Option<f64>| {
+                    v.ok_or_else(|| {
+                        HostError::field(path, key, "missing (no cameraMatrix to take it from)")
+                    })
+                };
+                let (fx, fy) = (need("fx", fx)?, need("fy", fy)?);
+                let (cx, cy) = (need("ccx", ccx)?, need("ccy", ccy)?);
+                [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+            }
+        };
         let dist_coeffs = match value.get("distCoeffs") {
             Some(coeffs) => json.numbers_exact(coeffs, "distCoeffs")?,
             None => [0.0; 5],
         };
         let camera = SpeedCamera {
-            width: size("Nu")?,
-            height: size("Nv")?,
-            ppx: number("ppx")?,
-            ppy: number("ppy")?,
-            fx: number("fx")?,
-            fy: number("fy")?,
-            ccx: number("ccx")?,
-            ccy: number("ccy")?,
+            width,
+            height,
+            pixel_pitch,
             camera_matrix,
             dist_coeffs,
         };
@@ -212,7 +336,21 @@ impl SpeedCamera {
     }
 
     pub fn write(&self, path: &Path) -> Result<()> {
-        write_json(path, self)
+        let k = &self.camera_matrix;
+        let metres = |axis: usize| self.pixel_pitch.map(|p| k[axis][axis] * p[axis]);
+        let file = SpeedCameraFile {
+            width: self.width,
+            height: self.height,
+            ppx: self.pixel_pitch.map(|p| p[0]),
+            ppy: self.pixel_pitch.map(|p| p[1]),
+            fx: metres(0),
+            fy: metres(1),
+            ccx: k[0][2],
+            ccy: k[1][2],
+            camera_matrix: *k,
+            dist_coeffs: self.dist_coeffs,
+        };
+        write_json(path, &file)
     }
 
     /// The pinhole intrinsics in pixels (from `cameraMatrix`).
@@ -251,6 +389,19 @@ impl SpeedCamera {
     pub fn undistort(&self, xd: f32, yd: f32) -> (f32, f32) {
         self.lens().invert(xd, yd)
     }
+}
+
+/// `cameraMatrix`: 3x3 finite numbers.
+fn read_camera_matrix(json: &JsonFile, rows: &Value) -> Result<[[f64; 3]; 3]> {
+    let rows = rows
+        .as_array()
+        .filter(|rows| rows.len() == 3)
+        .ok_or_else(|| json.field("cameraMatrix", "expected a 3x3 matrix"))?;
+    let mut matrix = [[0.0; 3]; 3];
+    for (r, (out, row)) in matrix.iter_mut().zip(rows).enumerate() {
+        *out = json.numbers_exact(row, &format!("cameraMatrix[{r}]"))?;
+    }
+    Ok(matrix)
 }
 
 /// What the simulator knows exactly (`truth.json`): the true pose of every frame, the sun
@@ -307,6 +458,36 @@ impl Truth {
     pub fn write(&self, path: &Path) -> Result<()> {
         write_json(path, self)
     }
+
+    /// The exact pose of every label, paired by filename (a truth file may list its frames in
+    /// any order, and more frames than the labels); `path` names the truth file in errors.
+    pub fn poses_for(&self, path: &Path, labels: &[Label]) -> Result<Vec<Pose>> {
+        let by_name: std::collections::HashMap<&str, &TruthFrame> = self
+            .frames
+            .iter()
+            .map(|frame| (frame.filename.as_str(), frame))
+            .collect();
+        labels
+            .iter()
+            .map(|label| {
+                let frame = by_name.get(label.filename.as_str()).ok_or_else(|| {
+                    HostError::field(
+                        path,
+                        "frames",
+                        format!("no frame named `{}` (a label names it)", label.filename),
+                    )
+                })?;
+                // Checked when the file was read.
+                frame.label().pose().ok_or_else(|| {
+                    HostError::field(
+                        path,
+                        "frames",
+                        format!("`{}`: not a valid pose", label.filename),
+                    )
+                })
+            })
+            .collect()
+    }
 }
 
 /// Choices made while loading.
@@ -335,6 +516,22 @@ pub struct SpeedPlusSet {
     pub label_file: PathBuf,
 }
 
+impl SpeedPlusSet {
+    /// The exact pose of every frame (in frame order, paired by filename), when the set has a
+    /// truth file.
+    pub fn true_poses(&self) -> Result<Option<Vec<Pose>>> {
+        let Some(truth) = &self.truth else {
+            return Ok(None);
+        };
+        let path = self
+            .label_file
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join("truth.json");
+        truth.poses_for(&path, &self.labels).map(Some)
+    }
+}
+
 /// Load a SPEED+ / SHIRT / simulator set from a label file or a folder (see the module docs).
 pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
     let reader = SpeedPlusReader::open(path, options)?;
@@ -345,13 +542,23 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
         .into_par_iter()
         .map(|index| reader.frame(index))
         .collect::<Result<Vec<_>>>()?;
-    let (scene_min, scene_max) = reader.scene_box();
+    let ((scene_min, scene_max), scene_box) = match reader.scene_box() {
+        Some(found) => (
+            found,
+            SceneBoxOrigin::Data(format!(
+                "{} (exact)",
+                reader.label_file.with_file_name("truth.json").display()
+            )),
+        ),
+        None => (([0.0; 3], [0.0; 3]), SceneBoxOrigin::Unknown),
+    };
     Ok(SpeedPlusSet {
         dataset: Dataset {
             source: path.to_path_buf(),
             frames,
             scene_min,
             scene_max,
+            scene_box,
             background: [0.0; 3],
         },
         labels,
@@ -418,12 +625,12 @@ impl SpeedPlusReader {
         self.labels.root.as_array().map_or(&[], Vec::as_slice)
     }
 
-    /// The scene box: the target's from `truth.json`, else TANGO's.
-    pub fn scene_box(&self) -> ([f32; 3], [f32; 3]) {
-        match &self.truth {
-            Some(truth) => (truth.target_box_min, truth.target_box_max),
-            None => TANGO_SCENE_BOX,
-        }
+    /// The scene box of the target from `truth.json`; `None` without one (the target is
+    /// unknown: its box must be stated or found from the frames).
+    pub fn scene_box(&self) -> Option<([f32; 3], [f32; 3])> {
+        self.truth
+            .as_ref()
+            .map(|truth| (truth.target_box_min, truth.target_box_max))
     }
 
     /// The checked label of frame `index`.
@@ -620,12 +827,7 @@ mod tests {
         SpeedCamera {
             width: 64,
             height: 40,
-            ppx: 5.86e-6 / scale,
-            ppy: 5.86e-6 / scale,
-            fx: 0.017513,
-            fy: 0.017512,
-            ccx: 32.0,
-            ccy: 20.0,
+            pixel_pitch: Some([5.86e-6 / scale; 2]),
             camera_matrix: [
                 [2988.58 * scale, 0.0, 32.0],
                 [0.0, 2988.34 * scale, 20.0],
@@ -727,10 +929,181 @@ mod tests {
                 frame.pixels[0]
             );
             assert!(frame.mask.is_none() && set.truth.is_none());
+            assert_eq!(set.dataset.scene_box, SceneBoxOrigin::Unknown);
+        }
+    }
+
+    /// The SPEED+ devkit camera (the copy built into the presets).
+    const REFERENCE_CAMERA: &str = include_str!("../../../scenes/speedplus-camera.json");
+
+    /// The reference camera rewritten with `edit` (a JSON object), read back.
+    fn camera_layout(
+        edit: impl FnOnce(&mut serde_json::Map<String, Value>),
+    ) -> Result<SpeedCamera> {
+        let mut value: Value = serde_json::from_str(REFERENCE_CAMERA).unwrap();
+        edit(value.as_object_mut().unwrap());
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("camera.json");
+        std::fs::write(&path, value.to_string()).unwrap();
+        SpeedCamera::read(&path)
+    }
+
+    fn drop_keys(map: &mut serde_json::Map<String, Value>, keys: &[&str]) {
+        for key in keys {
+            map.remove(*key).unwrap();
+        }
+    }
+
+    #[test]
+    fn the_three_camera_layouts_load_to_the_same_camera() {
+        let reference = camera_layout(|_| {}).unwrap();
+        let k = reference.camera_matrix;
+        assert_eq!((reference.width, reference.height), (1920, 1200));
+        assert!((k[0][0] - 0.017513075965995915 / 5.86e-6).abs() < 1e-6);
+        assert_eq!(reference.pixel_pitch, Some([5.86e-6; 2]));
+        let matrix_alone =
+            camera_layout(|m| drop_keys(m, &["ppx", "ppy", "fx", "fy", "ccx", "ccy"]));
+        let pixels = camera_layout(|m| {
+            drop_keys(m, &["ppx", "ppy", "cameraMatrix"]);
+            m.insert("fx".into(), k[0][0].into());
+            m.insert("fy".into(), k[1][1].into());
+        });
+        // Metres and pitch without the matrix say the same thing.
+        let metres = camera_layout(|m| drop_keys(m, &["cameraMatrix"]));
+        for (name, camera) in [
+            ("cameraMatrix alone", matrix_alone),
+            ("pixels", pixels),
+            ("metres", metres),
+        ] {
+            let camera = camera.unwrap_or_else(|e| panic!("{name}: {e}"));
+            let (a, b) = (camera.pinhole(), reference.pinhole());
             assert_eq!(
-                (set.dataset.scene_min, set.dataset.scene_max),
-                TANGO_SCENE_BOX
+                (a.width, a.height, a.cx, a.cy),
+                (b.width, b.height, b.cx, b.cy),
+                "{name}"
             );
+            assert!(
+                (a.fx - b.fx).abs() < 1e-3 && (a.fy - b.fy).abs() < 1e-3,
+                "{name}: {a:?}"
+            );
+            assert_eq!(camera.distortion(), reference.distortion(), "{name}");
+        }
+        let undistorted = camera_layout(|m| drop_keys(m, &["distCoeffs"])).unwrap();
+        assert_eq!(undistorted.pinhole(), reference.pinhole());
+        assert!(undistorted.distortion().is_none());
+        // Written and read back: the same camera.
+        let dir = tempfile::tempdir().unwrap();
+        reference.write(&dir.path().join("camera.json")).unwrap();
+        assert_eq!(
+            SpeedCamera::read(&dir.path().join("camera.json")).unwrap(),
+            reference
+        );
+    }
+
+    #[test]
+    fn a_camera_file_without_intrinsics_or_with_disagreeing_ones_names_the_field() {
+        type Edit = Box<dyn FnOnce(&mut serde_json::Map<String, Value>)>;
+        let cases: Vec<(Edit, &str, &str)> = vec![
+            (
+                Box::new(|m| {
+                    drop_keys(m, &["ppx", "ppy", "fx", "fy", "ccx", "ccy", "cameraMatrix"])
+                }),
+                "cameraMatrix",
+                "missing",
+            ),
+            (
+                Box::new(|m| {
+                    m.insert("fx".into(), 0.0180.into());
+                }),
+                "fx",
+                "cameraMatrix[0][0]",
+            ),
+            (
+                Box::new(|m| {
+                    m.insert("ccy".into(), 610.0.into());
+                }),
+                "ccy",
+                "cameraMatrix[1][2]",
+            ),
+            (Box::new(|m| drop_keys(m, &["ppy"])), "ppy", "missing"),
+            (
+                // Metres without a pitch or a matrix cannot be pixels.
+                Box::new(|m| drop_keys(m, &["ppx", "ppy", "cameraMatrix"])),
+                "fx",
+                "pixel pitch",
+            ),
+            (
+                Box::new(|m| drop_keys(m, &["cameraMatrix", "ccx"])),
+                "ccx",
+                "missing",
+            ),
+            (
+                Box::new(|m| {
+                    m.insert("ppx".into(), (-1.0).into());
+                }),
+                "ppx",
+                "positive",
+            ),
+        ];
+        for (edit, expected_field, expected_reason) in cases {
+            match camera_layout(edit) {
+                Err(HostError::Field {
+                    field,
+                    reason,
+                    file,
+                }) => {
+                    assert!(file.ends_with("camera.json"));
+                    assert_eq!(field, expected_field, "{reason}");
+                    assert!(reason.contains(expected_reason), "{field}: {reason}");
+                }
+                other => panic!("{expected_field}: {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn truth_pairs_with_labels_by_filename_and_must_cover_them() {
+        let label = |name: &str, angle: f32| {
+            Label::new(
+                name.into(),
+                Quat::from_rotation_y(angle),
+                Vec3::new(0.0, 0.0, 5.0),
+            )
+        };
+        let labels = vec![
+            label("a.png", 0.1),
+            label("b.png", 0.7),
+            label("c.png", 1.3),
+        ];
+        let truth_frame = |l: &Label| TruthFrame {
+            filename: l.filename.clone(),
+            q_vbs2tango_true: l.q_vbs2tango,
+            r_vo2to_vbs_true: l.r_vo2to_vbs,
+            sun_direction_body: [1.0, 0.0, 0.0],
+            exposure: 1.0,
+        };
+        // Listed in another order, with one frame the labels do not name.
+        let mut truth = Truth {
+            target_box_min: [-1.0; 3],
+            target_box_max: [1.0; 3],
+            frames: [2, 0, 1].iter().map(|&i| truth_frame(&labels[i])).collect(),
+        };
+        truth.frames.push(truth_frame(&label("extra.png", 2.0)));
+        let path = Path::new("set/truth.json");
+        let poses = truth.poses_for(path, &labels).unwrap();
+        let expected: Vec<Pose> = labels.iter().map(|l| l.pose().unwrap()).collect();
+        assert_eq!(poses, expected);
+        truth.frames.retain(|f| f.filename != "b.png");
+        match truth.poses_for(path, &labels) {
+            Err(HostError::Field {
+                file,
+                field,
+                reason,
+            }) => {
+                assert_eq!((file.as_path(), field.as_str()), (path, "frames"));
+                assert!(reason.contains("b.png"), "{reason}");
+            }
+            other => panic!("{other:?}"),
         }
     }
 

@@ -212,12 +212,7 @@ pub fn output_camera(sensor: &SpeedCamera, size: u16, distortion: bool) -> Speed
     SpeedCamera {
         width: size as u32,
         height: size as u32,
-        ppx: sensor.ppx / scale,
-        ppy: sensor.ppy / scale,
-        fx: sensor.fx,
-        fy: sensor.fy,
-        ccx: cx,
-        ccy: cy,
+        pixel_pitch: sensor.pixel_pitch.map(|pitch| pitch.map(|p| p / scale)),
         camera_matrix: [
             [k[0][0] * scale, 0.0, cx],
             [0.0, k[1][1] * scale, cy],
@@ -289,8 +284,8 @@ impl<'s> FrameSimulator<'s> {
     pub fn new(scene: &'s Scene) -> Result<FrameSimulator<'s>> {
         let spec = &scene.spec;
         let target = Target::build(scene)?;
-        let sensor =
-            SpeedCamera::read(&scene.resolve_path("camera.intrinsics", &spec.camera.intrinsics)?)?;
+        let intrinsics = scene.resolve_data("camera.intrinsics", &spec.camera.intrinsics)?;
+        let sensor = SpeedCamera::parse(&intrinsics.origin(), &intrinsics.text()?)?;
         let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
         Ok(FrameSimulator {
             scene,

@@ -9,15 +9,55 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-/// The repository root at build time: data paths in the presets are relative to it.
-const REPO_ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
-
 /// The presets shipped in `scenes/`, embedded so that they work from any folder.
 const PRESETS: [(&str, &str); 3] = [
     ("synthetic", include_str!("../../../scenes/synthetic.toml")),
     ("lightbox", include_str!("../../../scenes/lightbox.toml")),
     ("sunlamp", include_str!("../../../scenes/sunlamp.toml")),
 ];
+
+/// Data files built into the binary (copies of the SLAB SPEED+ devkit values, see
+/// `scenes/README.md`), by the name a scene gives them: the presets name them, and a user's
+/// scene file may too.
+const BUILTIN_DATA: [(&str, &str); 2] = [
+    (
+        "speedplus-camera.json",
+        include_str!("../../../scenes/speedplus-camera.json"),
+    ),
+    (
+        "tango-landmarks.csv",
+        include_str!("../../../scenes/tango-landmarks.csv"),
+    ),
+];
+
+/// A data file a scene names: on disk, or a copy built into the binary.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SceneData {
+    File(PathBuf),
+    Builtin {
+        name: &'static str,
+        text: &'static str,
+    },
+}
+
+impl SceneData {
+    /// What to name in messages: the file, or `<built-in>/NAME`.
+    pub fn origin(&self) -> PathBuf {
+        match self {
+            SceneData::File(path) => path.clone(),
+            SceneData::Builtin { name, .. } => Path::new("<built-in>").join(name),
+        }
+    }
+
+    pub fn text(&self) -> Result<String> {
+        match self {
+            SceneData::File(path) => {
+                std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))
+            }
+            SceneData::Builtin { text, .. } => Ok((*text).to_owned()),
+        }
+    }
+}
 
 /// Names of the shipped presets.
 pub fn preset_names() -> impl Iterator<Item = &'static str> {
@@ -317,14 +357,13 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// A preset name (`synthetic`, `lightbox`, `sunlamp`) or the path of a scene file.
+    /// A preset name (`synthetic`, `lightbox`, `sunlamp`) or the path of a scene file. A
+    /// preset's data are the built-in copies; a scene file's data paths are tried relative to
+    /// its folder, then the current folder, then against the built-in names.
     pub fn load(name_or_path: &str) -> Result<Scene> {
-        let cwd = std::env::current_dir().unwrap_or_default();
         if let Some((name, text)) = PRESETS.iter().find(|(name, _)| *name == name_or_path) {
-            let origin = Path::new(REPO_ROOT)
-                .join("scenes")
-                .join(format!("{name}.toml"));
-            return Scene::parse(text, origin, vec![cwd, PathBuf::from(REPO_ROOT)]);
+            let origin = Path::new("<built-in>").join(format!("{name}.toml"));
+            return Scene::parse(text, origin, Vec::new());
         }
         let path = Path::new(name_or_path);
         if !path.is_file() && path.extension().is_none() {
@@ -339,11 +378,8 @@ impl Scene {
         }
         let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
         let scene_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-        Scene::parse(
-            &text,
-            path.to_path_buf(),
-            vec![scene_dir, cwd, PathBuf::from(REPO_ROOT)],
-        )
+        let cwd = std::env::current_dir().unwrap_or_default();
+        Scene::parse(&text, path.to_path_buf(), vec![scene_dir, cwd])
     }
 
     /// Parse and check scene text; `origin` names it in errors.
@@ -364,27 +400,48 @@ impl Scene {
         })
     }
 
-    /// Resolve a data path named by `field`: absolute, or relative to the scene's folder, the
-    /// current folder or the repository root (first that exists).
-    pub fn resolve_path(&self, field: &str, path: &str) -> Result<PathBuf> {
+    /// Resolve a data file named by `field`: absolute, or relative to the search folders
+    /// (first that exists), else the built-in copy of that name.
+    pub fn resolve_data(&self, field: &str, path: &str) -> Result<SceneData> {
         let given = Path::new(path);
         let candidates: Vec<PathBuf> = if given.is_absolute() {
             vec![given.to_path_buf()]
         } else {
             self.search_dirs.iter().map(|dir| dir.join(given)).collect()
         };
-        candidates
-            .iter()
-            .find(|candidate| candidate.is_file())
-            .cloned()
-            .ok_or_else(|| {
-                let tried: Vec<_> = candidates.iter().map(|c| c.display().to_string()).collect();
-                HostError::field(
-                    &self.origin,
-                    field,
-                    format!("file `{path}` not found (tried {})", tried.join(", ")),
-                )
-            })
+        if let Some(found) = candidates.iter().find(|candidate| candidate.is_file()) {
+            return Ok(SceneData::File(found.clone()));
+        }
+        if let Some((name, text)) = BUILTIN_DATA.iter().find(|(name, _)| *name == path) {
+            return Ok(SceneData::Builtin { name, text });
+        }
+        let tried: Vec<_> = candidates.iter().map(|c| c.display().to_string()).collect();
+        let builtin: Vec<_> = BUILTIN_DATA.iter().map(|(name, _)| *name).collect();
+        Err(HostError::field(
+            &self.origin,
+            field,
+            format!(
+                "file `{path}` not found (tried {}; built-in: {})",
+                if tried.is_empty() {
+                    "no folder".to_owned()
+                } else {
+                    tried.join(", ")
+                },
+                builtin.join(", ")
+            ),
+        ))
+    }
+
+    /// [`Scene::resolve_data`] for data that must be a file on disk (a mesh).
+    pub fn resolve_path(&self, field: &str, path: &str) -> Result<PathBuf> {
+        match self.resolve_data(field, path)? {
+            SceneData::File(file) => Ok(file),
+            SceneData::Builtin { name, .. } => Err(HostError::field(
+                &self.origin,
+                field,
+                format!("`{name}` is built-in data, not a mesh file"),
+            )),
+        }
     }
 
     /// The material a part uses: the scene's `[materials.NAME]`, else a built-in one.
@@ -649,5 +706,77 @@ impl Effects {
             )?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_use_the_built_in_data_and_scene_files_prefer_their_own() {
+        for name in preset_names() {
+            let scene = Scene::load(name).unwrap();
+            let camera = scene
+                .resolve_data("camera.intrinsics", &scene.spec.camera.intrinsics)
+                .unwrap();
+            assert!(
+                matches!(
+                    camera,
+                    SceneData::Builtin {
+                        name: "speedplus-camera.json",
+                        ..
+                    }
+                ),
+                "{name}: {camera:?}"
+            );
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let preset = PRESETS
+            .iter()
+            .find(|(name, _)| *name == "lightbox")
+            .unwrap()
+            .1;
+        let scene_file = dir.path().join("mine.toml");
+        std::fs::write(&scene_file, preset).unwrap();
+        let scene = Scene::load(scene_file.to_str().unwrap()).unwrap();
+        // Not next to the scene file (nor, presumably, in the test's folder): the built-in copy.
+        let builtin = scene
+            .resolve_data("target.landmarks", "tango-landmarks.csv")
+            .unwrap();
+        assert_eq!(
+            builtin.origin(),
+            Path::new("<built-in>/tango-landmarks.csv")
+        );
+        assert!(builtin.text().unwrap().starts_with("x,y,z"));
+        // A file of that name beside the scene file wins.
+        let local = dir.path().join("tango-landmarks.csv");
+        std::fs::write(&local, "x,y,z\n0,0,0\n").unwrap();
+        assert_eq!(
+            scene
+                .resolve_data("target.landmarks", "tango-landmarks.csv")
+                .unwrap(),
+            SceneData::File(local)
+        );
+        let missing = scene
+            .resolve_data("camera.intrinsics", "other.json")
+            .unwrap_err();
+        assert!(
+            missing.to_string().contains("speedplus-camera.json")
+                && missing.to_string().contains("camera.intrinsics"),
+            "{missing}"
+        );
+        // A mesh must be a file.
+        assert!(
+            scene
+                .resolve_path("target.path", "tango-landmarks.csv")
+                .is_ok()
+        );
+        std::fs::remove_file(dir.path().join("tango-landmarks.csv")).unwrap();
+        assert!(
+            scene
+                .resolve_path("target.path", "tango-landmarks.csv")
+                .is_err()
+        );
     }
 }

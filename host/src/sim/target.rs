@@ -144,8 +144,8 @@ impl Target {
     pub fn build(scene: &Scene) -> Result<Target> {
         let parts = match &scene.spec.target {
             TargetSpec::Tango { landmarks, .. } => {
-                let path = scene.resolve_path("target.landmarks", landmarks)?;
-                tango_parts(&read_landmarks(&path)?)
+                let data = scene.resolve_data("target.landmarks", landmarks)?;
+                tango_parts(&parse_landmarks(&data.origin(), &data.text()?)?)
             }
             TargetSpec::Mesh { path, scale, .. } => {
                 let file = scene.resolve_path("target.path", path)?;
@@ -334,6 +334,11 @@ impl Target {
 /// Read the SPEED+ landmarks file: a header line, then one `x,y,z` line (metres) per landmark.
 pub fn read_landmarks(path: &Path) -> Result<Vec<Vec3>> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+    parse_landmarks(path, &text)
+}
+
+/// [`read_landmarks`] on the text of the file `path` names.
+fn parse_landmarks(path: &Path, text: &str) -> Result<Vec<Vec3>> {
     text.lines()
         .enumerate()
         .skip(1)

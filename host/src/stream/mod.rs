@@ -21,7 +21,7 @@ pub use source::{
 };
 
 use crate::checkpoint::{self, Checkpoint, Section};
-use crate::dataset::{Dataset, Frame};
+use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use crate::report::{self, ViewMetrics};
 use crate::train;
@@ -170,10 +170,17 @@ pub fn stream_config(
     store: u16,
     replacement: Replacement,
     steps_per_frame: u32,
-) -> Config {
+) -> Result<Config> {
+    let (aabb_min, aabb_max) = info.scene_box.ok_or_else(|| {
+        HostError::invalid(
+            &info.name,
+            "no scene box: the source has no truth.json and a stream cannot find the box from \
+             one frame at a time; state it with --scene-box xmin,ymin,zmin,xmax,ymax,zmax",
+        )
+    })?;
     let mut c = *base;
-    c.aabb_min = info.scene_min;
-    c.aabb_max = info.scene_max;
+    c.aabb_min = aabb_min;
+    c.aabb_max = aabb_max;
     c.background = info.background;
     c.max_frames = store;
     c.max_pixels_per_frame = info.max_pixels.min(u32::MAX as usize) as u32;
@@ -182,7 +189,7 @@ pub fn stream_config(
         c.steps = (frames.saturating_mul(steps_per_frame as u64)).clamp(1, u32::MAX as u64) as u32;
     }
     c.warmup_steps = c.warmup_steps.min(c.steps);
-    c
+    Ok(c)
 }
 
 /// Resident memory of this process in MiB (Linux `/proc/self/status`), NaN elsewhere.
@@ -410,8 +417,9 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
         let view = Dataset {
             source: info.name.clone().into(),
             frames: vec![frame],
-            scene_min: info.scene_min,
-            scene_max: info.scene_max,
+            scene_min: trainer.config().aabb_min,
+            scene_max: trainer.config().aabb_max,
+            scene_box: SceneBoxOrigin::Stated("the stream's config".into()),
             background: info.background,
         };
         let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, None)?;

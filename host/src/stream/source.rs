@@ -34,8 +34,10 @@ pub struct SourceInfo {
     /// What identifies the source across runs (canonical path, or scene and its settings):
     /// a stream resumes only from the same source.
     pub identity: String,
-    pub scene_min: [f32; 3],
-    pub scene_max: [f32; 3],
+    /// The box (world units) that holds the scene; `None` when the source cannot know it (a
+    /// SPEED+ folder without `truth.json`: the stream sees one frame at a time, too few to
+    /// find it, so the user states it).
+    pub scene_box: Option<([f32; 3], [f32; 3])>,
     pub background: [f32; 3],
     /// Pixels of the largest frame.
     pub max_pixels: usize,
@@ -148,8 +150,10 @@ impl DatasetSource {
                 let info = SourceInfo {
                     name,
                     identity,
-                    scene_min: nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
-                    scene_max: nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
+                    scene_box: Some((
+                        nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
+                        nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
+                    )),
                     background: SYNTHETIC_BACKGROUND,
                     max_pixels: reader.output_pixels(),
                     frames: Some(reader.len() as u64),
@@ -162,12 +166,10 @@ impl DatasetSource {
                     domain: None,
                 };
                 let reader = SpeedPlusReader::open(path, &options)?;
-                let (scene_min, scene_max) = reader.scene_box();
                 let info = SourceInfo {
                     name,
                     identity,
-                    scene_min,
-                    scene_max,
+                    scene_box: reader.scene_box(),
                     background: [0.0; 3],
                     max_pixels: reader.decoder.output_camera().pixel_count(),
                     frames: Some(reader.len() as u64),
@@ -237,7 +239,6 @@ impl<'s> SimulatorSource<'s> {
     pub fn new(scene: &'s Scene) -> Result<SimulatorSource<'s>> {
         let simulator = FrameSimulator::new(scene)?;
         let decoder = FrameDecoder::new(simulator.camera_file().clone(), None);
-        let (scene_min, scene_max) = simulator.scene_box();
         let spec = &scene.spec;
         let info = SourceInfo {
             name: format!("simulated {}", scene.origin.display()),
@@ -248,8 +249,7 @@ impl<'s> SimulatorSource<'s> {
                 spec.size,
                 spec.seed
             ),
-            scene_min,
-            scene_max,
+            scene_box: Some(simulator.scene_box()),
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: Some(scene.spec.frames as u64),
@@ -351,22 +351,21 @@ pub struct WatchedFolder {
 
 impl WatchedFolder {
     /// Open `dir` (its `camera.json` must be there), resizing frames to `width`. The scene box
-    /// is TANGO's unless the folder has a simulator `truth.json`.
+    /// is known only when the folder has a simulator `truth.json`.
     pub fn open(dir: &Path, width: Option<u32>, options: WatchOptions) -> Result<WatchedFolder> {
         let camera = SpeedCamera::read(&dir.join("camera.json"))?;
         let decoder = FrameDecoder::new(camera, width);
         let truth = dir.join("truth.json");
-        let (scene_min, scene_max) = if truth.is_file() {
+        let scene_box = if truth.is_file() {
             let truth = speedplus::Truth::read(&truth)?;
-            (truth.target_box_min, truth.target_box_max)
+            Some((truth.target_box_min, truth.target_box_max))
         } else {
-            speedplus::TANGO_SCENE_BOX
+            None
         };
         let info = SourceInfo {
             name: dir.display().to_string(),
             identity: format!("watched folder {}", canonical(dir).display()),
-            scene_min,
-            scene_max,
+            scene_box,
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: None,
