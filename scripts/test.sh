@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Every test of the project: the workspace's unit and end-to-end tests, then the core's
-# cross-compilation for the embedded targets (with and without defmt). Installs the targets.
+# cross-compilation for the embedded targets (with and without defmt), and the onboard checks
+# (scripts/onboard.sh). Installs the targets.
 # Ends with one line counting everything that passed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -22,5 +23,9 @@ done
 echo "cross-build: orbit-nerf-core for thumbv7em-none-eabihf with defmt"
 cargo build -p orbit-nerf-core --release --target thumbv7em-none-eabihf --features defmt
 builds=$((builds + 1))
+# The onboard checks: x86-64 = aarch64 training, Cortex-M = host rendering (under QEMU).
+./scripts/onboard.sh | tee "$log"
+onboard=$(grep -c '^check passed:' "$log" || true)
+builds=$((builds + onboard))
 # Tests and cross-builds together (a failure stops the script before this line).
 echo "summary: $((passed + builds)) passed, 0 failed"

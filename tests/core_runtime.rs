@@ -141,8 +141,8 @@ fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     method.random_background = true;
     method.foreground_fraction = 0.5;
     for (name, config, recorded) in [
-        ("tiny", plain, 0x571d_e1fb_b5d5_5bb2),
-        ("tiny + method", method, 0xcb19_5d84_aedd_af42),
+        ("tiny", plain, 0x6aa7_07ce_dd10_1a7c),
+        ("tiny + method", method, 0x8196_9c03_bbf5_70b3),
     ] {
         let Some(bytes) = checkpoint_of_config(config, 2) else {
             return;
@@ -183,10 +183,19 @@ fn plan_parts(plan: &MemoryPlan) -> [(&'static str, usize); 10] {
 
 #[test]
 fn memory_plans_match_the_recorded_budgets_and_the_arena_use() {
-    for (name, cap_expected) in [("standard.toml", 64 << 20), ("tiny.toml", 8 << 20)] {
+    // The render profile is a render-only arena (the firmware's).
+    for (name, cap_expected, render_only) in [
+        ("standard.toml", 64 << 20, false),
+        ("tiny.toml", 8 << 20, false),
+        ("render.toml", 256 << 10, true),
+    ] {
         let (config, recorded, cap) = budget(name);
         assert_eq!(cap, cap_expected, "{name}: cap");
-        let plan = MemoryPlan::new(&config);
+        let plan = if render_only {
+            MemoryPlan::render_only(&config)
+        } else {
+            MemoryPlan::new(&config)
+        };
         assert!(
             plan.total <= cap,
             "{name}: plan {} bytes exceeds the cap {cap}",
@@ -206,7 +215,11 @@ fn memory_plans_match_the_recorded_budgets_and_the_arena_use() {
         );
         // The bytes the core takes from the arena equal the plan, part by part.
         let mut arena = vec![0u8; plan.total];
-        let trainer = Trainer::new(config, &mut arena).unwrap();
+        let trainer = if render_only {
+            Trainer::new_render_only(config, &mut arena).unwrap()
+        } else {
+            Trainer::new(config, &mut arena).unwrap()
+        };
         let used = trainer.memory_used();
         assert_eq!(
             MemoryPlan {
@@ -222,6 +235,68 @@ fn memory_plans_match_the_recorded_budgets_and_the_arena_use() {
             "{name}: total used differs from the plan"
         );
     }
+}
+
+// The firmware's config and view; its pack reader and fingerprint run in scripts/onboard.sh.
+#[allow(dead_code)]
+#[path = "../firmware/src/pack.rs"]
+mod firmware_pack;
+
+/// A render-only trainer renders the bytes a full trainer renders from the same sections, and
+/// refuses to train; the firmware's config is the render profile.
+#[test]
+fn render_only_trainer_renders_what_the_trainer_renders() {
+    let (config, _, _) = budget("render.toml");
+    assert_eq!(firmware_pack::CONFIG, config, "firmware/src/pack.rs CONFIG");
+    let mut full_arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut full = Trainer::new(config, &mut full_arena).unwrap();
+    let mut arena = vec![0u8; MemoryPlan::render_only(&config).total];
+    let mut renderer = Trainer::new_render_only(config, &mut arena).unwrap();
+    for name in firmware_pack::SECTIONS {
+        let (_, bytes) = full
+            .sections()
+            .into_iter()
+            .find(|(n, _)| *n == name)
+            .unwrap();
+        let bytes = bytes.to_vec();
+        renderer.restore_section(name, &bytes).unwrap();
+    }
+    let camera = firmware_pack::CAMERA;
+    let mut from_full = vec![0.0f32; camera.pixel_count() * 3];
+    let mut from_render_only = vec![1.0f32; camera.pixel_count() * 3];
+    let pose = firmware_pack::pose();
+    full.render(&Sequential, &camera, &pose, &[], &mut from_full)
+        .unwrap();
+    renderer
+        .render(&Sequential, &camera, &pose, &[], &mut from_render_only)
+        .unwrap();
+    assert!(
+        from_full.iter().any(|&v| v != 1.0),
+        "the render is all background"
+    );
+    assert_eq!(
+        bytemuck::cast_slice::<f32, u8>(&from_full),
+        bytemuck::cast_slice::<f32, u8>(&from_render_only)
+    );
+    assert_eq!(renderer.step(&Sequential).unwrap_err(), Error::RenderOnly);
+    let pixels = vec![0u8; 3];
+    let one_pixel = Camera {
+        width: 1,
+        height: 1,
+        ..camera
+    };
+    assert_eq!(
+        renderer.set_frame(0, one_pixel, pose, &pixels, None),
+        Err(Error::RenderOnly)
+    );
+    assert_eq!(
+        renderer.restore_section("plane_m", &[0u8; 4]).unwrap_err(),
+        Error::BadSection {
+            name: "plane_m",
+            expected: 0,
+            got: 4
+        }
+    );
 }
 
 #[test]
@@ -248,7 +323,7 @@ fn bad_configs_name_the_field() {
         ("scales", |c| c.scales = 0),
         ("resolutions", |c| c.resolutions[1] = 1),
         ("features", |c| c.features = 12),
-        ("sh_degree", |c| c.sh_degree = 5),
+        ("sh_bands", |c| c.sh_bands = 5),
         ("aabb", |c| c.aabb_max[0] = f32::NAN),
         ("rays_per_batch", |c| c.rays_per_batch = 1023),
         ("chunks", |c| c.chunks = 0),

@@ -58,8 +58,7 @@ fn stream_api(
     events: &mut dyn FnMut(&Event<'_>),
 ) -> (Outcome, StreamState) {
     let (config, mut state, restored) = if resume {
-        let (saved, config, state) = stream::load(checkpoint).unwrap();
-        source.seek(state.position).unwrap();
+        let (saved, config, state) = stream::resume(checkpoint, source).unwrap();
         (config, state, Some(saved))
     } else {
         let config = stream::stream_config(
@@ -69,7 +68,7 @@ fn stream_api(
             Replacement::Novelty,
             settings().steps_per_frame,
         );
-        let state = StreamState::new(settings(), store as usize);
+        let state = StreamState::new(settings(), store as usize, source.info());
         (config, state, None)
     };
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
@@ -292,7 +291,7 @@ fn watch_options(grace_ms: u64) -> WatchOptions {
     WatchOptions {
         poll: Duration::from_millis(20),
         grace: Duration::from_millis(grace_ms),
-        idle_timeout: Duration::from_secs(30),
+        idle_timeout: Some(Duration::from_secs(30)),
     }
 }
 
@@ -484,7 +483,7 @@ fn a_nerf_synthetic_folder_streams_its_training_split_in_file_order() {
     assert_eq!(source.position(), 3);
     // A held-out view reads again identically.
     let first = source.reload(1).unwrap();
-    source.seek(1).unwrap();
+    source.seek(1, &[]).unwrap();
     match source.next(&stop) {
         Some(stream::Arrival::Frame(again)) => assert_eq!(again.pixels, first.pixels),
         _ => panic!("lego frame 1 reads again"),

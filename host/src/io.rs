@@ -14,6 +14,21 @@ fn temp_name(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
+/// Check, before any work, that `out` can be the output folder: it is a folder or does not
+/// exist yet, and no existing part of its path is a file.
+pub fn check_output_folder(out: &Path) -> Result<()> {
+    if let Some(file) = out.ancestors().find(|p| p.exists() && !p.is_dir()) {
+        return Err(HostError::invalid(
+            file,
+            format!(
+                "is a file, not a folder, so {} cannot be the output folder",
+                out.display()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Write `bytes` to `path` atomically (temporary file, fsync, rename). Creates parent folders.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {

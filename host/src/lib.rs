@@ -6,10 +6,12 @@ pub mod dataset;
 pub mod error;
 pub mod formats;
 pub mod io;
+pub mod memory;
 pub mod metrics;
 pub mod report;
 pub mod sim;
 pub mod stream;
 pub mod train;
+pub mod values;
 
 pub use error::{HostError, Result};

@@ -6,87 +6,10 @@ use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
 use crate::report::{ViewMetrics, score_view};
-use orbit_nerf_core::{Config, Executor, PosePivot, Replacement, TexelUpdate, Trainer};
+use orbit_nerf_core::{Config, Executor, Trainer};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Instant;
-
-/// Serde mirror of the core's `Config`, so configs can be read from TOML and stored in
-/// checkpoints without the core depending on serde.
-#[derive(Serialize, Deserialize)]
-#[serde(remote = "Config", deny_unknown_fields)]
-pub struct ConfigDef {
-    pub scales: u8,
-    pub resolutions: [u16; 4],
-    pub features: u16,
-    pub density_hidden: u16,
-    pub geo_features: u16,
-    pub colour_hidden: u16,
-    pub sh_degree: u8,
-    pub embedding_dim: u16,
-    pub init_low: f32,
-    pub init_high: f32,
-    pub aabb_min: [f32; 3],
-    pub aabb_max: [f32; 3],
-    pub background: [f32; 3],
-    pub random_background: bool,
-    pub occupancy_res: u16,
-    pub occupancy_every: u32,
-    pub occupancy_threshold: f32,
-    pub occupancy_decay: f32,
-    pub march_steps: u16,
-    pub max_samples_per_ray: u16,
-    pub min_transmittance: f32,
-    pub max_frames: u16,
-    #[serde(with = "ReplacementDef")]
-    pub replacement: Replacement,
-    pub max_pixels_per_frame: u32,
-    pub rays_per_batch: u32,
-    pub foreground_fraction: f32,
-    pub chunks: u8,
-    pub samples_per_chunk: u32,
-    pub steps: u32,
-    pub warmup_steps: u32,
-    pub learning_rate: f32,
-    pub final_lr_factor: f32,
-    pub adam_beta1: f32,
-    pub adam_beta2: f32,
-    pub adam_eps: f32,
-    #[serde(with = "TexelUpdateDef")]
-    pub texel_update: TexelUpdate,
-    pub pose_lr_factor: f32,
-    pub pose_correction: bool,
-    #[serde(with = "PosePivotDef")]
-    pub pose_pivot: PosePivot,
-    pub pose_warmup_steps: u32,
-    pub seed: u64,
-}
-
-#[derive(Serialize, Deserialize)]
-#[serde(remote = "PosePivot", rename_all = "snake_case")]
-pub enum PosePivotDef {
-    Camera,
-    TargetOrigin,
-}
-
-#[derive(Serialize, Deserialize)]
-#[serde(remote = "TexelUpdate", rename_all = "snake_case")]
-pub enum TexelUpdateDef {
-    MasterCopy,
-    StochasticRounding,
-}
-
-#[derive(Serialize, Deserialize)]
-#[serde(remote = "Replacement", rename_all = "snake_case")]
-pub enum ReplacementDef {
-    Fifo,
-    Novelty,
-    Coverage,
-}
-
-#[derive(Serialize, Deserialize)]
-struct ConfigWrapper(#[serde(with = "ConfigDef")] Config);
 
 /// Read a full config from a TOML file: every field named, either at the top level or in a
 /// `[config]` table (as in the budget files, `budgets/*.toml`).
@@ -98,8 +21,15 @@ pub fn read_config(path: &Path) -> Result<Config> {
         Some(toml::Value::Table(inner)) => inner.clone(),
         _ => table,
     };
-    let ConfigWrapper(config) = table.try_into().map_err(|e: toml::de::Error| {
-        HostError::invalid(path, format!("not a valid config: {}", e.message()))
+    let config: Config = serde_path_to_error::deserialize(table).map_err(|e| {
+        let field = e.path().to_string();
+        let reason = e.into_inner().to_string();
+        // Unknown and missing fields are reported at the top level; the reason names them.
+        if field == "." {
+            HostError::invalid(path, format!("not a valid config: {reason}"))
+        } else {
+            HostError::field(path, field, reason)
+        }
     })?;
     config.validate().map_err(|e| match e {
         orbit_nerf_core::Error::InvalidConfig { field } => {
@@ -111,7 +41,7 @@ pub fn read_config(path: &Path) -> Result<Config> {
 }
 
 pub fn config_to_toml(config: &Config) -> String {
-    toml::to_string(&ConfigWrapper(*config)).unwrap_or_default()
+    toml::to_string(config).unwrap_or_default()
 }
 
 /// Runs the core's chunks on a rayon pool of a fixed size.
@@ -194,7 +124,7 @@ pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
 
 /// The trainer's whole state and config as a checkpoint (`path` names it in errors).
 pub fn checkpoint_of(path: &Path, trainer: &Trainer<'_>) -> Result<Checkpoint> {
-    let config = postcard::to_allocvec(&ConfigWrapper(*trainer.config()))
+    let config = postcard::to_allocvec(trainer.config())
         .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
     let sections = trainer
         .sections()
@@ -219,7 +149,7 @@ pub fn checkpoint_config(path: &Path, checkpoint: &Checkpoint) -> Result<Config>
             format!("checkpoint holds `{}`, not a trainer", checkpoint.kind),
         ));
     }
-    let ConfigWrapper(config) = postcard::from_bytes(&checkpoint.config)
+    let config: Config = postcard::from_bytes(&checkpoint.config)
         .map_err(|e| HostError::field(path, "config", format!("cannot decode: {e}")))?;
     config
         .validate()

@@ -44,6 +44,9 @@ impl<'a> Carver<'a> {
         self.used += padded;
         let part = &mut part[..bytes];
         part.fill(0);
-        bytemuck::try_cast_slice_mut(part).map_err(|_| Error::ArenaTooSmall { needed: 0, got: 0 })
+        bytemuck::try_cast_slice_mut(part).map_err(|_| Error::Misaligned {
+            part_align: PART_ALIGN,
+            type_align: core::mem::align_of::<T>(),
+        })
     }
 }

@@ -6,11 +6,17 @@ use glam::{Mat3, Quat, Vec3};
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Camera {
+    /// Image width in pixels.
     pub width: u16,
+    /// Image height in pixels.
     pub height: u16,
+    /// Horizontal focal length in pixels.
     pub fx: f32,
+    /// Vertical focal length in pixels.
     pub fy: f32,
+    /// Principal point, x coordinate in pixels from the left image edge.
     pub cx: f32,
+    /// Principal point, y coordinate in pixels from the top image edge.
     pub cy: f32,
 }
 
@@ -25,6 +31,7 @@ impl Camera {
         )
     }
 
+    /// Number of pixels in the image, `width * height`.
     pub fn pixel_count(&self) -> usize {
         self.width as usize * self.height as usize
     }
@@ -45,7 +52,9 @@ impl Camera {
 /// Camera-to-world pose: `p_world = rotation * p_cam + center`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Pose {
+    /// Camera-to-world rotation; its columns are the camera's x, y, z axes in world axes.
     pub rotation: Mat3,
+    /// Camera centre in world coordinates.
     pub center: Vec3,
 }
 
@@ -63,6 +72,7 @@ impl defmt::Format for Pose {
 }
 
 impl Pose {
+    /// The camera at the world origin, looking along world +z.
     pub const IDENTITY: Pose = Pose {
         rotation: Mat3::IDENTITY,
         center: Vec3::ZERO,
@@ -106,7 +116,9 @@ impl Pose {
 /// gradients stay finite however far an update pushes `v`.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseCorrection {
+    /// Translation added to the ray origins, in world units.
     pub dt: Vec3,
+    /// Vector part of the rotation quaternion applied to the ray directions (`|v| <= 1`).
     pub v: Vec3,
 }
 
@@ -125,15 +137,24 @@ impl PoseCorrection {
         }
     }
 
-    /// The vector part actually used (capped at unit length) and the scalar part.
+    /// The vector part actually used (capped at unit length) and the scalar part; the
+    /// identity for a non-finite `v` (an infinite component would give inf x 0 = NaN).
     fn quaternion(&self) -> (Vec3, f32) {
-        let n2 = self.v.length_squared();
-        if n2 > 1.0 {
-            (self.v * (1.0 / libm::sqrtf(n2)), 0.0)
-        } else if n2.is_finite() {
-            (self.v, libm::sqrtf(1.0 - n2))
+        if !self.v.is_finite() {
+            return (Vec3::ZERO, 1.0);
+        }
+        // Scaled down first, so that |v|² cannot overflow for a huge finite `v`.
+        let largest = self.v.abs().max_element();
+        let v = if largest > 1.0 {
+            self.v * (1.0 / largest)
         } else {
-            (Vec3::ZERO, 1.0)
+            self.v
+        };
+        let n2 = v.length_squared();
+        if n2 > 1.0 {
+            (v * (1.0 / libm::sqrtf(n2)), 0.0)
+        } else {
+            (v, libm::sqrtf(1.0 - n2))
         }
     }
 
@@ -208,6 +229,9 @@ mod tests {
             Vec3::new(1.0, 0.0, 0.0),
             Vec3::new(0.6, 0.8, 1e-4),
             Vec3::splat(3.0),
+            Vec3::new(1e30, -2e38, 0.0),
+            Vec3::new(f32::INFINITY, 0.0, 0.0),
+            Vec3::splat(f32::NEG_INFINITY),
             Vec3::splat(f32::NAN),
         ] {
             let pc = PoseCorrection { dt: Vec3::ZERO, v };

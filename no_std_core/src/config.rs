@@ -19,6 +19,11 @@ pub const POSE_PARAMS: usize = 6;
 /// How small plane updates survive storage in f16.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum TexelUpdate {
     /// Keep an f32 master copy of every texel; the f16 plane is its rounding.
     MasterCopy,
@@ -30,12 +35,17 @@ pub enum TexelUpdate {
 /// Which frame a full store gives up when a frame streams in (`Trainer::ingest_frame`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum Replacement {
     /// Every frame is admitted and replaces the oldest one.
     Fifo,
     /// Reservoir sampling weighted by novelty: a frame is admitted with probability
     /// `capacity / seen` scaled by how far it lies from the held frames (view direction and
-    /// brightness), and replaces the most redundant held frame (see `stream.rs`).
+    /// brightness), and replaces the most redundant held frame (see `replacement.rs`).
     Novelty,
     /// Every frame is admitted and replaces the most redundant held frame.
     Coverage,
@@ -47,6 +57,11 @@ pub enum Replacement {
 /// reachable), so it changes the conditioning, not the model.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(rename_all = "snake_case")
+)]
 pub enum PosePivot {
     /// The learned translation is dt itself: turning the directions leaves the camera centre
     /// where it is.
@@ -61,8 +76,16 @@ pub enum PosePivot {
     TargetOrigin,
 }
 
+/// Everything that decides what the trainer computes. With the `serde` feature it reads from
+/// and writes to config files (every field named, no others) and checkpoints; checkpoints
+/// encode the fields by position, so their order is part of the checkpoint format.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(
+    feature = "serde",
+    derive(serde::Serialize, serde::Deserialize),
+    serde(deny_unknown_fields)
+)]
 pub struct Config {
     // --- field ---
     /// Number of plane scales in use (1..=MAX_SCALES).
@@ -77,16 +100,20 @@ pub struct Config {
     pub geo_features: u16,
     /// Width of the colour MLP's two hidden layers.
     pub colour_hidden: u16,
-    /// Spherical-harmonics degree of the view encoding (1..=4, giving degree² values).
-    pub sh_degree: u8,
+    /// Spherical-harmonics bands of the view encoding (1..=4): `b` bands are the degrees
+    /// 0..b, giving b² values.
+    pub sh_bands: u8,
     /// Per-frame appearance embedding fed to the colour MLP (0 disables it).
     pub embedding_dim: u16,
     /// Planes start uniform in [init_low, init_high] (K-Planes: 0.1, 0.5).
     pub init_low: f32,
+    /// Upper bound of the uniform plane initialisation.
     pub init_high: f32,
 
     // --- scene and rendering ---
+    /// Lowest corner of the scene box in world coordinates; rays are marched inside the box.
     pub aabb_min: [f32; 3],
+    /// Highest corner of the scene box in world coordinates (above `aabb_min` on every axis).
     pub aabb_max: [f32; 3],
     /// Colour behind the scene, composited where rays leave the box.
     pub background: [f32; 3],
@@ -114,6 +141,7 @@ pub struct Config {
     pub min_transmittance: f32,
 
     // --- capacities ---
+    /// Frame slots in the arena: the most frames held at once.
     pub max_frames: u16,
     /// What a full frame store does with a streamed-in frame.
     pub replacement: Replacement,
@@ -133,14 +161,21 @@ pub struct Config {
     pub samples_per_chunk: u32,
 
     // --- optimisation ---
+    /// Training steps of the learning-rate schedule (the cosine decay ends here).
     pub steps: u32,
+    /// Steps of linear learning-rate warmup before the cosine decay.
     pub warmup_steps: u32,
+    /// Peak learning rate of the field (planes and MLP), reached after the warmup.
     pub learning_rate: f32,
     /// The cosine schedule ends at learning_rate * final_lr_factor.
     pub final_lr_factor: f32,
+    /// Adam's decay of the first-moment (mean gradient) estimate, in [0, 1).
     pub adam_beta1: f32,
+    /// Adam's decay of the second-moment (squared gradient) estimate, in [0, 1).
     pub adam_beta2: f32,
+    /// Adam's denominator guard, added to the root of the second moment.
     pub adam_eps: f32,
+    /// How Adam updates reach the f16 plane texels.
     pub texel_update: TexelUpdate,
     /// Pose corrections learn at pose_lr_factor * the field's rate (the paper's beta <= 0.01).
     pub pose_lr_factor: f32,
@@ -151,6 +186,7 @@ pub struct Config {
     /// Pose corrections stay at zero for this many steps, until the field has formed (early
     /// gradients of a blurry field push poses anywhere).
     pub pose_warmup_steps: u32,
+    /// Seed of every random draw (initialisation, ray picks, jitter, rounding, admission).
     pub seed: u64,
 }
 
@@ -177,7 +213,7 @@ impl Config {
         density_hidden: 64,
         geo_features: 15,
         colour_hidden: 64,
-        sh_degree: 4,
+        sh_bands: 4,
         embedding_dim: 0,
         init_low: 0.1,
         init_high: 0.5,
@@ -228,15 +264,19 @@ impl Config {
         ..Config::DEFAULT
     };
 
+    /// Inputs of the density MLP: the plane features of every scale.
     pub const fn density_inputs(&self) -> usize {
         self.scales as usize * self.features as usize
     }
+    /// Outputs of the density MLP: the density and the geometry features.
     pub const fn density_outputs(&self) -> usize {
         1 + self.geo_features as usize
     }
+    /// Spherical-harmonics values of the view encoding (`sh_bands²`).
     pub const fn sh_values(&self) -> usize {
-        self.sh_degree as usize * self.sh_degree as usize
+        self.sh_bands as usize * self.sh_bands as usize
     }
+    /// Inputs of the colour MLP: SH values, geometry features and the appearance embedding.
     pub const fn colour_inputs(&self) -> usize {
         self.sh_values() + self.geo_features as usize + self.embedding_dim as usize
     }
@@ -251,12 +291,15 @@ impl Config {
         }
         n
     }
+    /// Learnable plane values: texels times features per texel.
     pub const fn plane_params(&self) -> usize {
         self.texels() * self.features as usize
     }
+    /// Rays of one chunk (`rays_per_batch / chunks`).
     pub const fn rays_per_chunk(&self) -> usize {
         self.rays_per_batch as usize / self.chunks as usize
     }
+    /// Cells of the occupancy grid (`occupancy_res³`).
     pub const fn occupancy_cells(&self) -> usize {
         let r = self.occupancy_res as usize;
         r * r * r
@@ -265,6 +308,7 @@ impl Config {
     pub const fn frame_params(&self) -> usize {
         self.embedding_dim as usize + POSE_PARAMS
     }
+    /// Where each MLP layer's weights and biases sit in the parameter vector.
     pub const fn mlp(&self) -> MlpLayout {
         MlpLayout::new(self)
     }
@@ -292,8 +336,8 @@ impl Config {
         if !(1..=256).contains(&self.colour_hidden) {
             return bad("colour_hidden");
         }
-        if !(1..=4).contains(&self.sh_degree) {
-            return bad("sh_degree");
+        if !(1..=4).contains(&self.sh_bands) {
+            return bad("sh_bands");
         }
         if self.embedding_dim > 128 {
             return bad("embedding_dim");
@@ -394,26 +438,38 @@ impl Config {
 /// Weights are stored input-major: `w[k * outputs + n]`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct MlpLayout {
+    /// The five layers in evaluation order, indexed by `DENSITY_HIDDEN` .. `COLOUR_OUT`.
     pub layers: [Layer; 5],
+    /// Length of the parameter vector (all weights and biases).
     pub total: usize,
 }
 
+/// One fully connected layer of an MLP: its shape and where its parameters start.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Layer {
+    /// Input width.
     pub inputs: usize,
+    /// Output width.
     pub outputs: usize,
+    /// Offset of the first of its `inputs * outputs` weights in the parameter vector.
     pub weights: usize,
+    /// Offset of the first of its `outputs` biases in the parameter vector.
     pub biases: usize,
 }
 
-/// Layer indices in `MlpLayout::layers`.
+/// Layer index in `MlpLayout::layers`: the density MLP's hidden layer.
 pub const DENSITY_HIDDEN: usize = 0;
+/// Layer index: the density MLP's output (density and geometry features).
 pub const DENSITY_OUT: usize = 1;
+/// Layer index: the colour MLP's first hidden layer.
 pub const COLOUR_HIDDEN1: usize = 2;
+/// Layer index: the colour MLP's second hidden layer.
 pub const COLOUR_HIDDEN2: usize = 3;
+/// Layer index: the colour MLP's output (RGB).
 pub const COLOUR_OUT: usize = 4;
 
 impl MlpLayout {
+    /// Lay out the five layers of `c`'s MLPs back to back, each as weights then biases.
     pub const fn new(c: &Config) -> MlpLayout {
         let dims = [
             (c.density_inputs(), c.density_hidden as usize),
@@ -469,6 +525,7 @@ pub struct MemoryPlan {
     pub ray_batch: usize,
     /// Per-chunk sample buffers, per-ray results and MLP activation scratch.
     pub samples: usize,
+    /// Sum of the aligned parts plus `PART_ALIGN` bytes of slack to align the buffer's start.
     pub total: usize,
 }
 
@@ -501,7 +558,13 @@ pub const fn activation_floats(c: &Config) -> usize {
 /// f32 values stored per sample: position (3), density, geometry features, colour (3),
 /// density gradient, colour gradient (3).
 pub const fn sample_floats(c: &Config) -> usize {
-    3 + 1 + c.geo_features as usize + RGB + 1 + RGB
+    forward_sample_floats(c) + 1 + RGB
+}
+
+/// f32 values per sample that rendering uses: position (3), density, geometry features,
+/// colour (3).
+pub const fn forward_sample_floats(c: &Config) -> usize {
+    3 + 1 + c.geo_features as usize + RGB
 }
 
 /// f32 values stored per ray of the batch: origin and direction (pose-corrected), target
@@ -510,7 +573,22 @@ pub const fn sample_floats(c: &Config) -> usize {
 pub const RAY_FLOATS: usize = 15;
 
 impl MemoryPlan {
+    /// Everything training needs.
     pub const fn new(c: &Config) -> MemoryPlan {
+        Self::plan(c, true)
+    }
+
+    /// Only what rendering reads and writes: the planes, the MLP weights, the occupancy bits,
+    /// the ray batch's rays and each chunk's forward buffers; no optimiser state, gradients,
+    /// frame store or running densities ([`crate::Trainer::new_render_only`]).
+    pub const fn render_only(c: &Config) -> MemoryPlan {
+        Self::plan(c, false)
+    }
+
+    /// `training`: the whole plan; otherwise the render-only one. Each part the render-only
+    /// plan leaves out is zero there (`t` below), so both come from one list.
+    const fn plan(c: &Config, training: bool) -> MemoryPlan {
+        let t = if training { 1 } else { 0 };
         let texels = c.texels();
         let params = c.plane_params();
         let chunks = c.chunks as usize;
@@ -524,28 +602,34 @@ impl MemoryPlan {
 
         let planes = align(params * 2);
         let plane_master = match c.texel_update {
-            TexelUpdate::MasterCopy => align(params * 4),
+            TexelUpdate::MasterCopy => t * align(params * 4),
             TexelUpdate::StochasticRounding => 0,
         };
-        let plane_moments = 2 * align(params * 4);
-        let plane_grads = chunks * (align(params * 4) + align(bitmap)) + align(bitmap);
-        let mlp_bytes = 3 * align(mlp * 4) + chunks * align(mlp * 4);
+        let plane_moments = t * 2 * align(params * 4);
+        let plane_grads = t * (chunks * (align(params * 4) + align(bitmap)) + align(bitmap));
+        let mlp_bytes = align(mlp * 4) + t * (2 * align(mlp * 4) + chunks * align(mlp * 4));
         let occupancy =
-            align(c.occupancy_cells().div_ceil(64) * 8) + align(c.occupancy_cells() * 4);
-        let frame_bytes = align(frames * c.max_pixels_per_frame as usize * 3)
-            + align(frames * c.max_pixels_per_frame as usize)
-            + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
-            + align(frames * 2)
-            + 3 * align(frames * frame_params * 4)
-            + chunks * align(frames * frame_params * 4);
-        let ray_batch = align(rays * RAY_FLOATS * 4) + align(rays * 4);
-        let per_chunk = align(samples * sample_floats(c) * 4)
+            align(c.occupancy_cells().div_ceil(64) * 8) + t * align(c.occupancy_cells() * 4);
+        let frame_bytes = t
+            * (align(frames * c.max_pixels_per_frame as usize * 3)
+                + align(frames * c.max_pixels_per_frame as usize)
+                + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
+                + align(frames * 2)
+                + 3 * align(frames * frame_params * 4)
+                + chunks * align(frames * frame_params * 4));
+        let ray_batch = align(rays * RAY_FLOATS * 4) + t * align(rays * 4);
+        let sample_block = if training {
+            sample_floats(c)
+        } else {
+            forward_sample_floats(c)
+        };
+        let per_chunk = align(samples * sample_block * 4)
             + align(samples * 4)
             + align((chunk_rays + 1) * 4)
-            + align(2 * LANES * activation_floats(c) * 4)
+            + align((1 + t) * LANES * activation_floats(c) * 4)
             + align(LANES * 3 * c.density_inputs() * 4)
-            + align(LANES * widest_layer(c) * 4)
-            + align(chunk_rays * 6 * 4);
+            + t * align(LANES * widest_layer(c) * 4)
+            + t * align(chunk_rays * 6 * 4);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes

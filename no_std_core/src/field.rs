@@ -88,6 +88,7 @@ fn load_texel<const F: usize>(planes: &[f16], texel: usize) -> [f32; F] {
         target_feature = "f16c",
         target_feature = "avx"
     ))]
+    #[allow(unsafe_code)] // The crate's one unsafe block: the f16c conversion intrinsics.
     {
         use core::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
         // F is a multiple of 8 (validated config). The conversion is exact, so this path
@@ -284,23 +285,24 @@ const SH_C3: [f32; 7] = [
     -0.590_043_6,
 ];
 
-/// Real spherical harmonics of direction `d` (unit length expected), `degree²` values.
-pub fn sh_forward(degree: usize, d: [f32; 3], out: &mut [f32]) {
+/// Real spherical harmonics of direction `d` (unit length expected) in `bands` bands
+/// (degrees 0..bands), `bands²` values.
+pub fn sh_forward(bands: usize, d: [f32; 3], out: &mut [f32]) {
     let [x, y, z] = d;
     out[0] = SH_C0;
-    if degree > 1 {
+    if bands > 1 {
         out[1] = -SH_C1 * y;
         out[2] = SH_C1 * z;
         out[3] = -SH_C1 * x;
     }
-    if degree > 2 {
+    if bands > 2 {
         let (xx, yy, zz) = (x * x, y * y, z * z);
         out[4] = SH_C2[0] * x * y;
         out[5] = SH_C2[1] * y * z;
         out[6] = SH_C2[2] * (2.0 * zz - xx - yy);
         out[7] = SH_C2[3] * x * z;
         out[8] = SH_C2[4] * (xx - yy);
-        if degree > 3 {
+        if bands > 3 {
             out[9] = SH_C3[0] * y * (3.0 * xx - yy);
             out[10] = SH_C3[1] * x * y * z;
             out[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
@@ -313,15 +315,15 @@ pub fn sh_forward(degree: usize, d: [f32; 3], out: &mut [f32]) {
 }
 
 /// Backward of `sh_forward`: d loss / d d, given d loss / d (each SH value).
-pub fn sh_backward(degree: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
+pub fn sh_backward(bands: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
     let [x, y, z] = d;
     let mut g = [0.0f32; 3];
-    if degree > 1 {
+    if bands > 1 {
         g[1] -= SH_C1 * d_out[1];
         g[2] += SH_C1 * d_out[2];
         g[0] -= SH_C1 * d_out[3];
     }
-    if degree > 2 {
+    if bands > 2 {
         g[0] += SH_C2[0] * y * d_out[4];
         g[1] += SH_C2[0] * x * d_out[4];
         g[1] += SH_C2[1] * z * d_out[5];
@@ -333,7 +335,7 @@ pub fn sh_backward(degree: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
         g[2] += SH_C2[3] * x * d_out[7];
         g[0] += SH_C2[4] * 2.0 * x * d_out[8];
         g[1] += SH_C2[4] * -2.0 * y * d_out[8];
-        if degree > 3 {
+        if bands > 3 {
             let (xx, yy, zz) = (x * x, y * y, z * z);
             g[0] += SH_C3[0] * 6.0 * x * y * d_out[9];
             g[1] += SH_C3[0] * (3.0 * xx - 3.0 * yy) * d_out[9];
@@ -623,14 +625,14 @@ mod tests {
         for v in &mut d_out {
             *v = rng.uniform() - 0.5;
         }
-        for degree in 1..=4 {
-            let n = degree * degree;
+        for bands in 1..=4 {
+            let n = bands * bands;
             let loss = |d: [f32; 3]| {
                 let mut out = [0.0f32; 16];
-                sh_forward(degree, d, &mut out);
+                sh_forward(bands, d, &mut out);
                 (0..n).map(|i| (out[i] * d_out[i]) as f64).sum::<f64>()
             };
-            let g = sh_backward(degree, d, &d_out[..n]);
+            let g = sh_backward(bands, d, &d_out[..n]);
             for a in 0..3 {
                 let h = 1e-3f32;
                 let (mut p, mut m) = (d, d);
@@ -643,7 +645,7 @@ mod tests {
     }
 
     #[test]
-    fn sh_degree_two_is_orthonormal_on_axes() {
+    fn sh_on_the_z_axis_keeps_only_the_constant_and_z_terms() {
         // Values on +z: only the constant and the z-aligned terms are non-zero.
         let mut out = [0.0f32; 16];
         sh_forward(4, [0.0, 0.0, 1.0], &mut out);

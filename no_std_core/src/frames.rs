@@ -21,7 +21,7 @@ pub struct FrameMeta {
     pub center: [f32; 3],
     pub has_mask: u32,
     pub occupied: u32,
-    /// Mean pixel value in [0, 1] (the illumination descriptor of the streaming policy).
+    /// Mean pixel value in [0, 1] (the illumination descriptor of the replacement policy).
     pub brightness: f32,
     /// Arrival number of the frame in a stream (0 for frames put in place directly).
     pub arrival: u32,

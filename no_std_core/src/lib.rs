@@ -3,25 +3,27 @@
 //! No heap, no panics on input, bit-identical results for the same config, frames and seed
 //! on every target. The host brings threads through [`Executor`]; the core never depends on
 //! which thread ran which chunk.
-#![cfg_attr(not(feature = "std"), no_std)]
+#![no_std]
+#![deny(unsafe_code)]
+#![warn(missing_docs)]
 // The kernels index several structure-of-arrays rows by the same lane or feature.
 #![allow(clippy::needless_range_loop)]
 
 mod arena;
 pub mod camera;
 pub mod config;
-pub mod field;
-pub mod frames;
-pub mod optim;
-pub mod render;
+pub(crate) mod field;
+pub(crate) mod frames;
+pub(crate) mod optim;
+pub(crate) mod render;
+pub mod replacement;
 pub mod rng;
-pub mod stream;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
 pub use glam;
-pub use stream::Ingested;
+pub use replacement::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};
 
 /// Everything that can go wrong in the core; each names what was wrong.
@@ -29,26 +31,72 @@ pub use trainer::{Executor, Sequential, StepReport, Trainer};
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Error {
     /// A config field is out of range.
-    InvalidConfig { field: &'static str },
+    InvalidConfig {
+        /// Name of the first bad field (or group, such as `aabb`).
+        field: &'static str,
+    },
     /// The arena is smaller than the memory plan.
-    ArenaTooSmall { needed: usize, got: usize },
+    ArenaTooSmall {
+        /// Bytes the plan needs (`MemoryPlan::total`).
+        needed: usize,
+        /// Bytes the caller gave.
+        got: usize,
+    },
     /// A frame was rejected; `field` names the bad part.
-    InvalidFrame { field: &'static str },
+    InvalidFrame {
+        /// The bad part: `camera`, `pixels`, `mask`, `pose`, `slot` or `columns`.
+        field: &'static str,
+    },
     /// A frame has more pixels than a slot holds.
-    FrameTooLarge { pixels: usize, capacity: usize },
+    FrameTooLarge {
+        /// Pixels of the frame.
+        pixels: usize,
+        /// Pixels a slot holds (`Config::max_pixels_per_frame`).
+        capacity: usize,
+    },
     /// Training needs at least one frame.
     NoFrames,
     /// A caller buffer has the wrong length.
     BufferSize {
+        /// Name of the buffer.
         what: &'static str,
+        /// Length it must have, in elements.
         expected: usize,
+        /// Length it has.
         got: usize,
     },
-    /// A checkpoint section is unknown or has the wrong size.
+    /// A render-only trainer was asked to train, fit, refresh occupancy or take a frame.
+    RenderOnly,
+    /// A checkpoint section has the wrong size.
     BadSection {
+        /// Section name.
         name: &'static str,
+        /// Bytes the section has in this trainer.
         expected: usize,
+        /// Bytes given.
         got: usize,
+    },
+    /// A checkpoint section holds a NaN or an infinity (at element `index`), which would
+    /// stall every step after the restore.
+    NonFiniteSection {
+        /// Section name.
+        name: &'static str,
+        /// Index of the first non-finite element.
+        index: usize,
+    },
+    /// A checkpoint section name is not one of `Trainer::sections`.
+    UnknownSection,
+    /// A checkpoint's frame slot holds an invalid camera or a frame larger than a slot.
+    BadFrameSlot {
+        /// Index of the bad slot.
+        slot: usize,
+    },
+    /// An arena part cannot hold values of this alignment (a part starts on `part_align`).
+    Misaligned {
+        /// Alignment in bytes that every arena part starts on (`PART_ALIGN`).
+        part_align: usize,
+        /// Alignment in bytes the value type needs.
+        type_align: usize,
     },
 }
 
@@ -67,6 +115,7 @@ impl core::fmt::Display for Error {
                 )
             }
             Error::NoFrames => write!(f, "no frames to train on"),
+            Error::RenderOnly => write!(f, "this trainer was built render-only"),
             Error::BufferSize {
                 what,
                 expected,
@@ -82,9 +131,24 @@ impl core::fmt::Display for Error {
                     "checkpoint section `{name}` has {got} bytes, expected {expected}"
                 )
             }
+            Error::NonFiniteSection { name, index } => write!(
+                f,
+                "checkpoint section `{name}` holds a non-finite value (element {index})"
+            ),
+            Error::UnknownSection => write!(f, "checkpoint section is not one of the trainer's"),
+            Error::BadFrameSlot { slot } => write!(
+                f,
+                "checkpoint frame slot {slot} holds an invalid camera or a frame larger than a slot"
+            ),
+            Error::Misaligned {
+                part_align,
+                type_align,
+            } => write!(
+                f,
+                "arena parts start on {part_align} bytes, values need {type_align}"
+            ),
         }
     }
 }
 
-#[cfg(feature = "std")]
-impl std::error::Error for Error {}
+impl core::error::Error for Error {}

@@ -22,9 +22,10 @@ pub fn learning_rate(c: &Config, step: u32) -> f32 {
 /// The per-step constants of Adam with bias correction folded into the step size.
 #[derive(Clone, Copy, Debug)]
 pub struct AdamStep {
+    /// Decay of the first-moment (mean) estimate, from `Config::adam_beta1`.
     pub beta1: f32,
+    /// Decay of the second-moment (squared gradient) estimate, from `Config::adam_beta2`.
     pub beta2: f32,
-    pub eps: f32,
     /// lr * sqrt(1 - beta2^t) / (1 - beta1^t)
     pub step_size: f32,
     /// eps * sqrt(1 - beta2^t), so the update equals the textbook one.
@@ -32,15 +33,16 @@ pub struct AdamStep {
 }
 
 impl AdamStep {
-    /// `t` counts applied updates, starting at 1.
+    /// `t` counts applied updates, starting at 1 (0 is taken as 1: the bias correction at
+    /// t = 0 would divide 0 by 0).
     pub fn new(c: &Config, lr: f32, t: u32) -> Self {
+        let t = t.max(1);
         let b1t = libm::powf(c.adam_beta1, t as f32);
         let b2t = libm::powf(c.adam_beta2, t as f32);
         let root = libm::sqrtf(1.0 - b2t);
         AdamStep {
             beta1: c.adam_beta1,
             beta2: c.adam_beta2,
-            eps: c.adam_eps,
             step_size: lr * root / (1.0 - b1t),
             eps_hat: c.adam_eps * root,
         }
@@ -67,12 +69,19 @@ impl AdamStep {
     }
 }
 
+/// `x` as the nearest f16, saturating at the largest finite f16 instead of overflowing to
+/// infinity (NaN stays NaN).
+pub fn saturating_f16(x: f32) -> f16 {
+    f16::from_f32(x.clamp(-f16::MAX.to_f32(), f16::MAX.to_f32()))
+}
+
 /// Round `x` to one of the two f16 values around it, choosing the upper one with probability
-/// equal to its fractional distance, so the expected result is `x` (within f16 range).
+/// equal to its fractional distance, so the expected result is `x` (within f16 range; beyond
+/// it, the largest finite f16 of that sign).
 pub fn stochastic_round(x: f32, bits: u64) -> f16 {
-    let nearest = f16::from_f32(x);
+    let nearest = saturating_f16(x);
     let y = nearest.to_f32();
-    if y == x || !x.is_finite() || nearest.is_infinite() {
+    if y == x || !x.is_finite() || x.abs() >= f16::MAX.to_f32() {
         return nearest;
     }
     // The f16 neighbour on the other side of x: one unit in the last place toward x.
@@ -115,10 +124,10 @@ pub fn store_texel(
     match master {
         Some(m) => {
             *m += delta;
-            *texel = f16::from_f32(*m);
+            *texel = saturating_f16(*m);
         }
         None => {
-            let bits = rng::hash(seed, rng::stream::ROUNDING, step as u64, index as u64);
+            let bits = rng::hash(seed, rng::domain::ROUNDING, step as u64, index as u64);
             *texel = stochastic_round(texel.to_f32() + delta, bits);
         }
     }
@@ -150,6 +159,25 @@ mod tests {
     }
 
     #[test]
+    fn adam_at_t_0_takes_the_first_step_instead_of_dividing_0_by_0() {
+        let c = Config::DEFAULT;
+        let (mut m, mut v) = (0.0, 0.0);
+        let d = AdamStep::new(&c, 0.01, 0).delta(3.0, &mut m, &mut v);
+        assert!((d + 0.01).abs() < 1e-6, "{d}");
+    }
+
+    #[test]
+    fn master_copy_texels_saturate_instead_of_overflowing() {
+        let (mut texel, mut master) = (f16::ZERO, 65000.0f32);
+        store_texel(&mut texel, Some(&mut master), 1e6, 1, 1, 0);
+        assert_eq!(texel, f16::MAX);
+        store_texel(&mut texel, Some(&mut master), -1e7, 1, 1, 0);
+        assert_eq!(texel, f16::MIN);
+        store_texel(&mut texel, None, -1e7, 1, 1, 0);
+        assert_eq!(texel, f16::MIN);
+    }
+
+    #[test]
     fn stochastic_rounding_is_unbiased_where_nearest_rounding_vanishes() {
         // 1e-4 is far below half an f16 ulp at 0.3 (about 1.2e-4 ulp), so round-to-nearest
         // would never move; stochastic rounding moves on average by the exact amount.
@@ -167,7 +195,9 @@ mod tests {
         // Exact values, zero crossings and huge values stay sane.
         assert_eq!(stochastic_round(0.5, 7).to_f32(), 0.5);
         assert!(stochastic_round(-1e-9, 5).to_f32().abs() < 1e-7);
-        assert!(stochastic_round(1e9, 5).is_infinite());
+        assert_eq!(stochastic_round(1e9, 5), f16::MAX);
+        assert_eq!(stochastic_round(-1e9, 5), f16::MIN);
+        assert_eq!(stochastic_round(65519.0, 5), f16::MAX);
         assert!(stochastic_round(f32::NAN, 5).is_nan());
     }
 }

@@ -150,6 +150,14 @@ pub fn kept_samples(sigma: &[f32], step: f32, min_transmittance: f32) -> usize {
     sigma.len()
 }
 
+/// The opacity `1 - exp(-x)` of a sample of optical depth `x`, as `-expm1(-x)` (exact to
+/// the last bit for small `x`, where `1 - exp(-x)` cancels), and the transmittance it keeps.
+#[inline(always)]
+fn opacity_and_keep(depth: f32) -> (f32, f32) {
+    let opacity = -libm::expm1f(-depth);
+    (opacity, 1.0 - opacity)
+}
+
 /// Composite samples front to back onto `background`. Returns the colour and the final
 /// transmittance.
 pub fn composite_forward(
@@ -161,8 +169,8 @@ pub fn composite_forward(
     let mut transmittance = 1.0f32;
     let mut colour = [0.0f32; 3];
     for (s, c) in sigma.iter().zip(rgb) {
-        let keep = libm::expf(-s * step);
-        let weight = transmittance * (1.0 - keep);
+        let (opacity, keep) = opacity_and_keep(*s * step);
+        let weight = transmittance * opacity;
         for ch in 0..3 {
             colour[ch] += weight * c[ch];
         }
@@ -189,8 +197,8 @@ pub fn composite_backward(
     // Colour accumulated up to and including the current sample.
     let mut accumulated = [0.0f32; 3];
     for i in 0..sigma.len() {
-        let keep = libm::expf(-sigma[i] * step);
-        let weight = transmittance * (1.0 - keep);
+        let (opacity, keep) = opacity_and_keep(sigma[i] * step);
+        let weight = transmittance * opacity;
         let after = transmittance * keep;
         let mut d = 0.0f32;
         for ch in 0..3 {
@@ -257,6 +265,16 @@ mod tests {
                 assert!((d_rgb[i][ch] - numeric).abs() < 1e-4 + 1e-2 * numeric.abs());
             }
         }
+    }
+
+    #[test]
+    fn thin_samples_keep_their_opacity_to_the_last_bit() {
+        // 1 - exp(-1e-9) is 0 in f32; the opacity is 1e-9 to within rounding.
+        let (opacity, keep) = opacity_and_keep(1e-9);
+        assert!((opacity - 1e-9).abs() < 1e-15, "{opacity}");
+        assert_eq!(keep, 1.0);
+        let (c, t) = composite_forward(&[1e-6], &[[1.0, 1.0, 1.0]], 1e-3, [0.0; 3]);
+        assert!((c[0] - 1e-9).abs() < 1e-15 && t == 1.0, "{c:?}");
     }
 
     #[test]

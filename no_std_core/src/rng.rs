@@ -1,5 +1,5 @@
 //! Seeded randomness. Everything random in training is a pure function of
-//! (seed, stream, counter), so results never depend on how work is split across threads.
+//! (seed, domain, counter), so results never depend on how work is split across threads.
 
 /// splitmix64's finaliser: a bijective 64-bit mix.
 #[inline]
@@ -9,10 +9,10 @@ const fn mix(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// Random 64 bits for `(seed, stream, a, b)`.
+/// Random 64 bits for `(seed, domain, a, b)`.
 #[inline]
-pub const fn hash(seed: u64, stream: u64, a: u64, b: u64) -> u64 {
-    let h = mix(seed ^ stream.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+pub const fn hash(seed: u64, domain: u64, a: u64, b: u64) -> u64 {
+    let h = mix(seed ^ domain.wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let h = mix(h ^ a.wrapping_mul(0xd6e8_feb8_6659_fd93));
     mix(h ^ b.wrapping_mul(0xa076_1d64_78bd_642f))
 }
@@ -29,14 +29,21 @@ pub fn below(bits: u64, n: u32) -> u32 {
     (((bits >> 32) * n as u64) >> 32) as u32
 }
 
-/// Streams of `hash`, one per use.
-pub mod stream {
+/// Domains of `hash`, one per use, so that no two uses share draws.
+pub mod domain {
+    /// Which frame and pixel each training ray comes from.
     pub const RAY_PICK: u64 = 1;
+    /// Offset of each ray's first sample along the ray.
     pub const RAY_JITTER: u64 = 2;
+    /// Where in each occupancy cell the density is probed at a refresh.
     pub const OCCUPANCY: u64 = 3;
+    /// Stochastic rounding of updated texels to f16.
     pub const ROUNDING: u64 = 4;
+    /// Initial values of the planes and MLP weights.
     pub const INIT: u64 = 5;
+    /// Pixels picked for the rays of an appearance-embedding fit.
     pub const FIT: u64 = 6;
+    /// The replacement policy's choices when a frame streams in.
     pub const ADMIT: u64 = 7;
 }
 
@@ -47,14 +54,17 @@ pub struct Rng {
 }
 
 impl Rng {
+    /// A generator whose draws are fixed by `seed`.
     pub const fn new(seed: u64) -> Self {
         Rng { state: seed }
     }
+    /// The next 64 random bits.
     #[inline]
     pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(0x9e37_79b9_7f4a_7c15);
         mix(self.state)
     }
+    /// The next value, uniform in [0, 1).
     #[inline]
     pub fn uniform(&mut self) -> f32 {
         unit_f32(self.next_u64())

@@ -53,7 +53,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
         config.colour_inputs(),
         config.colour_hidden,
         config.colour_hidden,
-        config.sh_degree,
+        config.sh_bands,
         config.occupancy_res,
         config.rays_per_batch
     );

@@ -5,6 +5,7 @@
 use indicatif::{ProgressBar, ProgressStyle};
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::sim::{self, Scene};
+use orbit_nerf_host::{memory, values};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]
@@ -30,6 +31,10 @@ pub struct SimulateArgs {
     /// Also write a PNG contact sheet of frames spread through the dataset.
     #[arg(long, value_name = "PNG")]
     pub contact_sheet: Option<PathBuf>,
+    /// Largest memory the simulation may take (e.g. 8G, 512M); default: 80 % of the
+    /// machine's available memory. Checked before anything is rendered.
+    #[arg(long, value_parser = values::byte_size)]
+    pub memory_limit: Option<u64>,
     /// Tiles per row (and at most as many rows) of the contact sheet.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=32))]
     pub sheet_columns: u16,
@@ -47,6 +52,11 @@ pub fn run(args: &SimulateArgs) -> Result<(), Box<dyn std::error::Error>> {
         scene.spec.seed = seed;
     }
     let spec = &scene.spec;
+    memory::check_plan(
+        &scene.origin,
+        &sim::working_memory(spec, true),
+        memory::limit_or_default(args.memory_limit),
+    )?;
     let bar = ProgressBar::new(spec.frames as u64).with_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}")?
             .progress_chars("=> "),

@@ -13,8 +13,9 @@ use orbit_nerf_host::stream::{
     StreamSettings, StreamState, WatchOptions, WatchedFolder,
 };
 use orbit_nerf_host::train::{self, RayonExecutor};
+use orbit_nerf_host::{memory, values};
 use std::fmt::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -32,54 +33,62 @@ pub struct StreamArgs {
     #[arg(long)]
     pub watch: Option<PathBuf>,
     /// Frames to simulate (--scene).
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 120, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
-    /// Image size in pixels (simulated size, or the width dataset frames are resized to).
-    #[arg(long, default_value_t = 128)]
+    /// Image size in pixels (simulated size, or the width dataset frames are resized to); at
+    /// least 22, so that each half of a held-out view is wide enough for SSIM's 11x11 window.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u16).range(22..))]
     pub size: u16,
     /// Frame slots of the core's store.
-    #[arg(long, default_value_t = 40)]
+    #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u16).range(1..))]
     pub store: u16,
     /// Replacement policy of a full store.
     #[arg(long, value_enum, default_value_t = Policy::Fifo)]
     pub policy: Policy,
     /// Training steps after each usable frame.
-    #[arg(long, default_value_t = 17)]
+    #[arg(long, default_value_t = 17, value_parser = clap::value_parser!(u32).range(1..))]
     pub steps_per_frame: u32,
-    /// Every N-th usable frame is held out for the anytime-quality curve.
-    #[arg(long, default_value_t = 8)]
+    /// Every N-th usable frame is held out for the anytime-quality curve (N >= 2, so that
+    /// some frames are trained on).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..))]
     pub holdout: u64,
     /// Score the held-out views every K usable frames.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..))]
     pub eval_every: u64,
     /// Write the checkpoint every N arrivals (and always when stopping).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..))]
     pub checkpoint_every: u64,
     /// Steps fitting a held-out view's appearance embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
-    /// Pace a dataset folder at this many frames per second (does not change the result).
-    #[arg(long)]
+    /// Pace a dataset folder at this many frames per second, 0.001 to 1e6 (does not change
+    /// the result).
+    #[arg(long, value_parser = |text: &str| values::number_in(text, stream::source::RATE_RANGE))]
     pub rate: Option<f64>,
-    /// Watched folder: listing interval in milliseconds.
-    #[arg(long, default_value_t = 150)]
+    /// Watched folder: listing interval in milliseconds (1 to 60000).
+    #[arg(long, default_value_t = 150, value_parser = clap::value_parser!(u64).range(1..=60_000))]
     pub poll_ms: u64,
-    /// Watched folder: how long an incomplete frame is waited for before it is reported bad.
-    #[arg(long, default_value_t = 2000)]
+    /// Watched folder: how long an incomplete frame is waited for before it is reported bad,
+    /// in milliseconds (at most an hour).
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(0..=3_600_000))]
     pub grace_ms: u64,
-    /// Watched folder: end after this many seconds without a new file.
-    #[arg(long, default_value_t = 30.0)]
-    pub idle_timeout: f64,
+    /// Watched folder: end after this many seconds without a new file; `inf` waits for ever
+    /// (until END appears or Ctrl-C).
+    #[arg(long, default_value = "30", value_parser = values::timeout_seconds)]
+    pub idle_timeout: values::Timeout,
     /// End the stream after this many arrivals.
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_frames: Option<u64>,
     /// Stop (and checkpoint) after this many arrivals, as Ctrl-C would; resume with --resume.
     #[arg(long)]
     pub stop_after: Option<u64>,
     /// Continue the stream saved in OUT/checkpoint.onrf (same source; its config and
     /// settings are used).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "force")]
     pub resume: bool,
+    /// Start a fresh stream even though OUT holds an earlier stream's checkpoint, replacing it.
+    #[arg(long)]
+    pub force: bool,
     /// After the stream, train a model offline on all its training frames with the same
     /// number of steps and compare the held-out quality.
     #[arg(long)]
@@ -95,8 +104,12 @@ pub struct StreamArgs {
     /// Random seed of the model (overrides the config).
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
+    /// machine's available memory. Checked before anything is allocated.
+    #[arg(long, value_parser = values::byte_size)]
+    pub memory_limit: Option<u64>,
+    /// Worker threads, 1 to 1024 (results do not depend on it).
+    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=1024))]
     pub threads: usize,
     /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md.
     #[arg(long, default_value = "runs/stream")]
@@ -136,9 +149,9 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
         stream_from(args, &mut DatasetSource::open(dir, width, args.rate)?)
     } else if let Some(dir) = &args.watch {
         let options = WatchOptions {
-            poll: Duration::from_millis(args.poll_ms.max(1)),
+            poll: Duration::from_millis(args.poll_ms),
             grace: Duration::from_millis(args.grace_ms),
-            idle_timeout: Duration::from_secs_f64(args.idle_timeout.max(0.0)),
+            idle_timeout: args.idle_timeout.0,
         };
         stream_from(args, &mut WatchedFolder::open(dir, width, options)?)
     } else {
@@ -173,10 +186,10 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
 fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
     let checkpoint_path = args.out.join("checkpoint.onrf");
     let (config, mut state, restored) = if args.resume {
-        let (checkpoint, config, state) = stream::load(&checkpoint_path)?;
-        source.seek(state.position)?;
+        let (checkpoint, config, state) = stream::resume(&checkpoint_path, source)?;
         (config, state, Some(checkpoint))
     } else {
+        stream::check_fresh_start(&checkpoint_path, args.force)?;
         let mut info = source.info().clone();
         info.frames = info.frames.or(args.max_frames);
         let config = stream::stream_config(
@@ -195,12 +208,17 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         };
         (
             config,
-            StreamState::new(settings, config.max_frames as usize),
+            StreamState::new(settings, config.max_frames as usize, source.info()),
             None,
         )
     };
     let executor = RayonExecutor::new(args.threads)?;
     let plan = MemoryPlan::new(&config);
+    memory::check_arena(
+        Path::new(&format!("the model for {}", source.info().name)),
+        &plan,
+        memory::limit_or_default(args.memory_limit),
+    )?;
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
     if let Some(checkpoint) = &restored {

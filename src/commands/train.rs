@@ -27,6 +27,7 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: &TrainArgs) -> CliResult {
+    orbit_nerf_host::io::check_output_folder(&args.out)?;
     let (dataset, train_idx, test_idx) = open_dataset(&args.data)?;
     let base = model_config(&args.model)?;
     let config = train::fit_config(&base, &dataset, train_idx.len());

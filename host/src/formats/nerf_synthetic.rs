@@ -131,8 +131,9 @@ impl SyntheticReader {
     /// vertical one, when given, covers non-square sensors.
     fn intrinsics(&self, (w, h): (u32, u32)) -> Intrinsics {
         let (w, h) = (w as f64, h as f64);
-        let fx = 0.5 * w / (0.5 * self.angle_x).tan();
-        let fy = self.angle_y.map_or(fx, |a| 0.5 * h / (0.5 * a).tan());
+        // libm, not the platform's math library: the same focal length on every target.
+        let fx = 0.5 * w / libm::tan(0.5 * self.angle_x);
+        let fy = self.angle_y.map_or(fx, |a| 0.5 * h / libm::tan(0.5 * a));
         Intrinsics {
             fx,
             fy,

@@ -231,6 +231,36 @@ pub fn output_camera(sensor: &SpeedCamera, size: u16, distortion: bool) -> Speed
     }
 }
 
+/// Bytes a frame being rendered holds per output pixel: linear RGB f32 (12), the flare's
+/// bright-pass and blur buffers (12 + 12), the mask (1), the 8-bit image (3) and its PNG
+/// encoding (at most about 4).
+pub const RENDER_BYTES_PER_PIXEL: u64 = 44;
+/// Bytes a loaded frame holds per pixel: RGB and mask, 8 bits each.
+pub const LOADED_BYTES_PER_PIXEL: u64 = 4;
+
+/// The memory a simulation of `spec` needs: the frames rendered at once (one per worker
+/// thread of the pool [`simulate`] runs on) and, when `load_back`, the whole dataset read back
+/// to check it.
+pub fn working_memory(spec: &SceneSpec, load_back: bool) -> Vec<crate::memory::Part> {
+    let pixels = u64::from(spec.size) * u64::from(spec.size);
+    let frames_at_once = (rayon::current_num_threads() as u64).min(u64::from(spec.frames));
+    let mut parts = vec![(
+        "frames being rendered",
+        pixels
+            .saturating_mul(RENDER_BYTES_PER_PIXEL)
+            .saturating_mul(frames_at_once),
+    )];
+    if load_back {
+        parts.push((
+            "dataset read back",
+            pixels
+                .saturating_mul(LOADED_BYTES_PER_PIXEL)
+                .saturating_mul(u64::from(spec.frames)),
+        ));
+    }
+    parts
+}
+
 /// Image file name of frame `index` (SPEED+ numbering starts at 1).
 pub fn frame_filename(index: u32) -> String {
     format!("img{:06}.png", index + 1)
@@ -283,8 +313,9 @@ impl<'s> FrameSimulator<'s> {
         self.target.triangle_count()
     }
 
-    /// Frame `index`: a pure function of the scene, its seed and the index.
-    pub fn render(&self, index: u32) -> SimulatedFrame {
+    /// Frame `index`: a pure function of the scene, its seed and the index. Fails when the
+    /// frame's geometry is degenerate.
+    pub fn render(&self, index: u32) -> Result<SimulatedFrame> {
         let spec = &self.scene.spec;
         let renderer = Renderer {
             target: &self.target,
@@ -296,12 +327,12 @@ impl<'s> FrameSimulator<'s> {
         };
         let mut times = StageTimes::default();
         let (center, radius) = (self.target.center(), self.target.radius());
-        let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index);
+        let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index)?;
         let filename = frame_filename(index);
         let (q, r) = match &spec.effects.label_noise {
             Some(noise) => times.time(Stage::LabelNoise, || {
                 trajectory::noisy_label(&view, noise, spec.seed, index)
-            }),
+            })?,
             None => (view.body_to_camera, view.target_in_camera),
         };
         let label = Label::new(filename.clone(), q, r);
@@ -314,20 +345,21 @@ impl<'s> FrameSimulator<'s> {
             sun_direction_body: view.sun_body.to_array().map(f64::from),
             exposure: view.exposure as f64,
         };
-        SimulatedFrame {
+        Ok(SimulatedFrame {
             filename,
             label,
             truth,
             image,
             times,
-        }
+        })
     }
 }
 
 /// Render every frame of `scene` and write the dataset to `out`. `progress` is called once per
 /// finished frame (from worker threads). Output is staged in a sibling folder and moved into
-/// place when complete; an existing `out` is replaced only if it is empty or a simulated
-/// dataset.
+/// place when complete, so a killed run leaves no partial dataset at `out` (its staging folder
+/// is removed by the next run for the same `out`); an existing `out` is replaced only if it
+/// is empty or holds nothing but a simulated dataset.
 pub fn simulate(
     scene: &Scene,
     out: &Path,
@@ -337,10 +369,9 @@ pub fn simulate(
     let spec = &scene.spec;
     check_replaceable(out)?;
     let simulator = FrameSimulator::new(scene)?;
-    let staging = sibling(out, "partial");
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| HostError::io(&staging, e))?;
-    }
+    remove_stale_siblings(out)?;
+    let staging = sibling(out, STAGING, std::process::id());
+    std::fs::create_dir_all(&staging).map_err(|e| HostError::io(&staging, e))?;
 
     let frames = (0..spec.frames)
         .into_par_iter()
@@ -351,7 +382,7 @@ pub fn simulate(
                 truth,
                 image,
                 mut times,
-            } = simulator.render(index);
+            } = simulator.render(index)?;
             times.time(Stage::Write, || {
                 let size = spec.size as u32;
                 write_png(
@@ -414,36 +445,124 @@ pub fn simulate(
     })
 }
 
-/// `out` may be replaced if it does not exist, is empty, or holds a simulated dataset.
+/// The entries a simulation writes into its output folder: a folder holding only these (and
+/// nothing else) is a simulated dataset that a new simulation may replace.
+const DATASET_ENTRIES: [&str; 6] = [
+    "images",
+    "masks",
+    "labels.json",
+    "truth.json",
+    "camera.json",
+    "scene.toml",
+];
+/// Suffixes of the sibling folders a simulation stages in and moves the old dataset to.
+const STAGING: &str = "partial";
+const REPLACED: &str = "old";
+
+/// `out` may be replaced if it does not exist, is empty, or holds a simulated dataset and
+/// nothing else (other files or folders inside it are never deleted).
 fn check_replaceable(out: &Path) -> Result<()> {
     if !out.exists() {
         return Ok(());
     }
-    let is_empty = std::fs::read_dir(out)
-        .map_err(|e| HostError::io(out, e))?
-        .next()
-        .is_none();
-    if is_empty || out.join("truth.json").is_file() {
-        Ok(())
-    } else {
-        Err(HostError::invalid(
+    if !out.is_dir() {
+        return Err(HostError::invalid(
             out,
-            "exists and is not a simulated dataset; refusing to replace it",
-        ))
+            "exists and is not a folder; refusing to replace it",
+        ));
     }
+    let foreign = foreign_entries(out)?;
+    if !foreign.is_empty() {
+        return Err(HostError::invalid(
+            out,
+            format!(
+                "holds {} that a simulation did not write; refusing to replace it (choose another --out or move them)",
+                foreign.join(", ")
+            ),
+        ));
+    }
+    Ok(())
 }
 
-fn sibling(out: &Path, what: &str) -> PathBuf {
-    let mut name = out
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_else(|| "dataset".into());
-    name.push(format!(".{what}-{}", std::process::id()));
+/// Names of the entries of `dir` that are not part of a simulated dataset.
+fn foreign_entries(dir: &Path) -> Result<Vec<String>> {
+    let mut foreign = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| HostError::io(dir, e))? {
+        let name = entry
+            .map_err(|e| HostError::io(dir, e))?
+            .file_name()
+            .to_string_lossy()
+            .into_owned();
+        // A kill during an atomic write leaves `ENTRY.tmpPID` (see `io::write_atomic`).
+        let written = DATASET_ENTRIES.iter().any(|entry| {
+            name.strip_prefix(entry).is_some_and(|rest| {
+                rest.is_empty()
+                    || rest
+                        .strip_prefix(".tmp")
+                        .is_some_and(|pid| pid.parse::<u32>().is_ok())
+            })
+        });
+        if !written {
+            foreign.push(name);
+        }
+    }
+    foreign.sort();
+    Ok(foreign)
+}
+
+/// `out`'s sibling `NAME.WHAT-PID`.
+fn sibling(out: &Path, what: &str, pid: u32) -> PathBuf {
+    let mut name = sibling_prefix(out);
+    name.push_str(&format!("{what}-{pid}"));
     out.with_file_name(name)
 }
 
+fn sibling_prefix(out: &Path) -> String {
+    let name = out
+        .file_name()
+        .map_or_else(|| "dataset".into(), |n| n.to_string_lossy().into_owned());
+    format!("{name}.")
+}
+
+/// Remove what killed simulations for `out` left behind: sibling staging and replaced folders
+/// whose process is gone and that hold only simulator output. Anything else is left alone.
+fn remove_stale_siblings(out: &Path) -> Result<()> {
+    let parent = match out.parent() {
+        Some(parent) if !parent.as_os_str().is_empty() => parent,
+        _ => Path::new("."),
+    };
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return Ok(());
+    };
+    let prefix = sibling_prefix(out);
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(&prefix).and_then(|rest| {
+            [STAGING, REPLACED].iter().find_map(|what| {
+                rest.strip_prefix(what)?
+                    .strip_prefix('-')?
+                    .parse::<u32>()
+                    .ok()
+            })
+        }) else {
+            continue;
+        };
+        let path = entry.path();
+        if !process_is_gone(pid) || !path.is_dir() || !foreign_entries(&path)?.is_empty() {
+            continue;
+        }
+        std::fs::remove_dir_all(&path).map_err(|e| HostError::io(&path, e))?;
+    }
+    Ok(())
+}
+
+/// Whether no process `pid` is running (Linux `/proc`); elsewhere, never assumed gone.
+fn process_is_gone(pid: u32) -> bool {
+    Path::new("/proc/self").exists() && !Path::new(&format!("/proc/{pid}")).exists()
+}
+
 fn move_into_place(staging: &Path, out: &Path) -> Result<()> {
-    let old = sibling(out, "old");
+    let old = sibling(out, REPLACED, std::process::id());
     if out.exists() {
         std::fs::rename(out, &old).map_err(|e| HostError::io(out, e))?;
     }

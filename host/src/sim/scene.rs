@@ -460,6 +460,10 @@ fn ensure(ok: bool, field: &str, reason: &str) -> std::result::Result<(), Proble
     }
 }
 
+/// Farthest camera distance (metres): f32 positions there still resolve a centimetre, and the
+/// squared distances the geometry takes stay far from overflowing.
+const MAX_DISTANCE_M: f32 = 1e5;
+
 fn non_zero(v: &[f32]) -> bool {
     v.iter().map(|x| x * x).sum::<f32>() > 1e-12
 }
@@ -486,9 +490,9 @@ impl SceneSpec {
                 ..
             } => {
                 ensure(
-                    distance_m.iter().all(|d| *d > 0.0),
+                    distance_m.iter().all(|d| *d > 0.0 && *d <= MAX_DISTANCE_M),
                     "poses.distance_m",
-                    "distances must be positive",
+                    "distances must be positive and at most 100 km",
                 )?;
                 ensure(
                     elevation_deg.iter().all(|e| e.abs() < 89.0),
@@ -500,9 +504,11 @@ impl SceneSpec {
             }
             PoseSpec::Random { distance_m } => {
                 ensure(
-                    distance_m[0] > 0.0 && distance_m[0] <= distance_m[1],
+                    distance_m[0] > 0.0
+                        && distance_m[0] <= distance_m[1]
+                        && distance_m[1] <= MAX_DISTANCE_M,
                     "poses.distance_m",
-                    "must be [min, max] with 0 < min <= max",
+                    "must be [min, max] with 0 < min <= max <= 100 km",
                 )?;
             }
         }

@@ -6,6 +6,7 @@
 //! frame is the dataset's world frame; the camera frame is OpenCV's (x right, y down, z forward).
 
 use super::scene::{LabelNoise, PoseSpec, SceneSpec, SunPath};
+use crate::error::{HostError, Result};
 use orbit_nerf_core::Camera;
 use orbit_nerf_core::glam::{Mat3, Quat, Vec3};
 use rand::{Rng, SeedableRng};
@@ -63,15 +64,20 @@ impl FrameView {
     }
 }
 
+/// Draws a rejection loop makes before it gives up: the sun cap (>= 10 degrees) accepts at
+/// least 0.76 % of the draws, so a sound geometry fails this often with probability < 1e-30.
+const MAX_DRAWS: u32 = 10_000;
+
 /// The view of frame `index` of `spec`, for a target whose bounding sphere is
-/// (`target_center`, `target_radius`) in the body frame, seen through `camera`.
+/// (`target_center`, `target_radius`) in the body frame, seen through `camera`. Fails (naming
+/// the frame) when the geometry is degenerate, e.g. not finite, so that no draw can succeed.
 pub fn frame_view(
     spec: &SceneSpec,
     target_center: Vec3,
     target_radius: f32,
     camera: &Camera,
     index: u32,
-) -> FrameView {
+) -> Result<FrameView> {
     let (orbit_from_body, body_to_camera, target_in_camera) = match &spec.poses {
         PoseSpec::Approach {
             distance_m,
@@ -149,13 +155,12 @@ pub fn frame_view(
             let camera_orbit =
                 (orbit_from_body * -(body_to_camera.inverse() * target_in_camera)).normalize();
             let min_cos = spec.sun.max_phase_deg.to_radians().cos();
-            // Rejection sampling, uniform over the allowed cap (wide enough, >= 10 deg, to end soon).
-            loop {
-                let sun = random_unit_vector(&mut rng);
-                if sun.dot(camera_orbit) >= min_cos {
-                    break sun;
-                }
-            }
+            // Rejection sampling, uniform over the allowed cap (wide enough, >= 10 deg, to end
+            // soon); bounded, since a non-finite camera direction accepts nothing.
+            (0..MAX_DRAWS)
+                .filter_map(|_| random_unit_vector(&mut rng))
+                .find(|sun| sun.dot(camera_orbit) >= min_cos)
+                .ok_or_else(|| degenerate(index, "no sun direction within sun.max_phase_deg"))?
         }
     };
     let earth_orbit = spec.effects.albedo.as_ref().map_or(Vec3::Z, |albedo| {
@@ -167,27 +172,51 @@ pub fn frame_view(
         rng.random_range(low..=high).exp()
     });
     let body_from_orbit = orbit_from_body.inverse();
-    FrameView {
+    let view = FrameView {
         body_to_camera,
         target_in_camera,
         sun_body: body_from_orbit * sun_orbit,
         earth_body: body_from_orbit * earth_orbit,
         exposure,
+    };
+    let finite = view.body_to_camera.is_finite()
+        && view.target_in_camera.is_finite()
+        && view.sun_body.is_finite()
+        && view.earth_body.is_finite()
+        && view.exposure.is_finite();
+    if !finite {
+        return Err(degenerate(index, "the pose or lighting is not finite"));
     }
+    Ok(view)
+}
+
+fn degenerate(index: u32, reason: &str) -> HostError {
+    HostError::field(
+        super::frame_filename(index),
+        "poses",
+        format!("degenerate frame geometry: {reason}"),
+    )
 }
 
 /// The label written for training: the exact pose rotated about a random axis by a Gaussian
 /// angle and shifted by Gaussian metres per axis.
-pub fn noisy_label(view: &FrameView, noise: &LabelNoise, seed: u64, index: u32) -> (Quat, Vec3) {
+pub fn noisy_label(
+    view: &FrameView,
+    noise: &LabelNoise,
+    seed: u64,
+    index: u32,
+) -> Result<(Quat, Vec3)> {
     let mut rng = frame_rng(seed, index, Stream::LabelNoise);
-    let axis = random_unit_vector(&mut rng);
+    let axis = (0..MAX_DRAWS)
+        .find_map(|_| random_unit_vector(&mut rng))
+        .ok_or_else(|| degenerate(index, "no label-noise axis drawn"))?;
     let angle = noise.rotation_deg.to_radians() * gaussian(&mut rng);
     let shift =
         noise.translation_m * Vec3::new(gaussian(&mut rng), gaussian(&mut rng), gaussian(&mut rng));
-    (
+    Ok((
         (Quat::from_axis_angle(axis, angle) * view.body_to_camera).normalize(),
         view.target_in_camera + shift,
-    )
+    ))
 }
 
 pub fn gaussian(rng: &mut Pcg64Mcg) -> f32 {
@@ -220,11 +249,9 @@ fn random_rotation(rng: &mut Pcg64Mcg) -> Quat {
     .normalize()
 }
 
-fn random_unit_vector(rng: &mut Pcg64Mcg) -> Vec3 {
-    loop {
-        let v = Vec3::new(gaussian(rng), gaussian(rng), gaussian(rng));
-        if v.length_squared() > 1e-6 {
-            return v.normalize();
-        }
-    }
+/// One draw of a uniform unit vector: `None` (draw again) when the Gaussian sample is too
+/// short to normalise.
+fn random_unit_vector(rng: &mut Pcg64Mcg) -> Option<Vec3> {
+    let v = Vec3::new(gaussian(rng), gaussian(rng), gaussian(rng));
+    (v.length_squared() > 1e-6).then(|| v.normalize())
 }

@@ -81,6 +81,10 @@ pub struct AnytimePoint {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamState {
     pub settings: StreamSettings,
+    /// The source's [`SourceInfo::identity`]: a resume from another source is refused.
+    pub source: String,
+    /// [`FrameSource::arrived`] at the last checkpoint.
+    pub arrived: Vec<String>,
     /// Arrivals consumed: the source position to resume from.
     pub position: u64,
     pub usable: u64,
@@ -97,9 +101,11 @@ pub struct StreamState {
 }
 
 impl StreamState {
-    pub fn new(settings: StreamSettings, capacity: usize) -> StreamState {
+    pub fn new(settings: StreamSettings, capacity: usize, source: &SourceInfo) -> StreamState {
         StreamState {
             settings,
+            source: source.identity.clone(),
+            arrived: Vec::new(),
             position: 0,
             usable: 0,
             offered: 0,
@@ -215,8 +221,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         if control.stop.load(Ordering::SeqCst)
             || control.stop_after.is_some_and(|n| state.position >= n)
         {
-            save(control.checkpoint, trainer, state)?;
-            on_event(&Event::Checkpoint(control.checkpoint));
+            checkpoint(control, trainer, source, state, on_event)?;
             return Ok(Outcome::Stopped);
         }
         if control.end_after.is_some_and(|n| state.position >= n) {
@@ -281,8 +286,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             .position
             .is_multiple_of(state.settings.checkpoint_every.max(1))
         {
-            save(control.checkpoint, trainer, state)?;
-            on_event(&Event::Checkpoint(control.checkpoint));
+            checkpoint(control, trainer, source, state, on_event)?;
         }
     }
     if state
@@ -296,9 +300,42 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         on_event(&Event::Anytime(&point));
         state.curve.push(point);
     }
+    // A finished stream that never trained holds nothing worth saving.
+    if state.usable == 0 {
+        return Err(HostError::invalid(
+            &source.info().name,
+            format!(
+                "no usable frame in {} arrivals ({} bad); nothing was learned",
+                state.position,
+                state.bad.len()
+            ),
+        ));
+    }
+    if trainer.state().step == 0 {
+        return Err(HostError::invalid(
+            &source.info().name,
+            format!(
+                "no training step: all {} usable frames were held out or turned away",
+                state.usable
+            ),
+        ));
+    }
+    checkpoint(control, trainer, source, state, on_event)?;
+    Ok(Outcome::Finished)
+}
+
+/// Save the stream (with the source's arrival names) and report it.
+fn checkpoint<S: FrameSource + ?Sized>(
+    control: &Control<'_>,
+    trainer: &Trainer<'_>,
+    source: &S,
+    state: &mut StreamState,
+    on_event: &mut dyn FnMut(&Event<'_>),
+) -> Result<()> {
+    state.arrived = source.arrived().to_vec();
     save(control.checkpoint, trainer, state)?;
     on_event(&Event::Checkpoint(control.checkpoint));
-    Ok(Outcome::Finished)
+    Ok(())
 }
 
 /// The core's checks of a frame (camera, pose, sizes) and of its exposure, as a host error
@@ -312,7 +349,7 @@ fn check(trainer: &Trainer<'_>, frame: &Frame) -> Result<()> {
             &frame.pixels,
             frame.mask.as_deref(),
         )
-        .and_then(|()| orbit_nerf_core::stream::check_exposure(&frame.pixels))
+        .and_then(|()| orbit_nerf_core::replacement::check_exposure(&frame.pixels))
         .map_err(|e| core_error(&frame.name, e))
 }
 
@@ -448,6 +485,49 @@ pub fn load(path: &Path) -> Result<(Checkpoint, Config, StreamState)> {
         ));
     }
     Ok((checkpoint, config, state))
+}
+
+/// Load the stream checkpoint at `path` and position `source` to continue it. Refused when the
+/// checkpoint was written by a stream from another source.
+pub fn resume<S: FrameSource + ?Sized>(
+    path: &Path,
+    source: &mut S,
+) -> Result<(Checkpoint, Config, StreamState)> {
+    let (checkpoint, config, state) = load(path)?;
+    let identity = &source.info().identity;
+    if state.source != *identity {
+        return Err(HostError::field(
+            path,
+            STREAM_SECTION,
+            format!(
+                "written by a stream from {}, not from {identity}; resume with the same source",
+                state.source
+            ),
+        ));
+    }
+    source.seek(state.position, &state.arrived)?;
+    Ok((checkpoint, config, state))
+}
+
+/// Before a fresh stream: refuse to replace the checkpoint of an earlier stream at `path`
+/// unless `replace` (the user asked for it); continuing it is `resume`'s job.
+pub fn check_fresh_start(path: &Path, replace: bool) -> Result<()> {
+    if let Some(out) = path.parent() {
+        crate::io::check_output_folder(out)?;
+    }
+    if path.exists() && !replace {
+        return Err(HostError::invalid(
+            path,
+            "holds the checkpoint of an earlier stream; continue it with --resume, or replace it with --force",
+        ));
+    }
+    if path.is_dir() {
+        return Err(HostError::invalid(
+            path,
+            "is a folder; the stream's checkpoint cannot be written there",
+        ));
+    }
+    Ok(())
 }
 
 /// The anytime curve as CSV.

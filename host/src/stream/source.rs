@@ -6,11 +6,13 @@
 //! **Watched folder format.** The folder holds `camera.json` (SPEED+ camera file) and, per
 //! frame, an image `NAME.png` (or `.jpg`) and a label `NAME.json`: one SPEED+ label object
 //! (`filename`, `q_vbs2tango_true` or `q_vbs2tango`, `r_Vo2To_vbs_true` or `r_Vo2To_vbs`).
-//! Frames arrive in the order of their names (`img000001`, `img000002`, ...). A frame whose
+//! Every frame that appears is taken once, whatever its name: of the frames not taken yet, the
+//! first in natural name order (`img2` before `img10`) comes next, so a late arrival whose name
+//! sorts before frames already taken is still ingested (or reported). A frame whose
 //! files are not both there and readable yet is waited for (up to a grace period, since a
 //! writer may be half-way through) before it is reported as bad. The stream ends when a file
-//! named `END` appears and every frame before it is in, after an idle timeout with nothing new,
-//! or at a maximum frame count.
+//! named `END` appears and every frame before it is in, after an idle timeout with nothing new
+//! (if one is set), or at a maximum frame count.
 
 use crate::dataset::Frame;
 use crate::error::{HostError, Result};
@@ -18,6 +20,8 @@ use crate::formats::nerf_synthetic::{self, SyntheticReader, SyntheticSplit};
 use crate::formats::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
 use crate::formats::transforms::{self, OutputSize};
 use crate::sim::{FrameSimulator, Scene};
+use std::cmp::Ordering as Order;
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -27,6 +31,9 @@ use std::time::{Duration, Instant};
 pub struct SourceInfo {
     /// Where the frames come from, for messages.
     pub name: String,
+    /// What identifies the source across runs (canonical path, or scene and its settings):
+    /// a stream resumes only from the same source.
+    pub identity: String,
     pub scene_min: [f32; 3],
     pub scene_max: [f32; 3],
     pub background: [f32; 3],
@@ -49,8 +56,14 @@ pub trait FrameSource {
     fn next(&mut self, stop: &AtomicBool) -> Option<Arrival>;
     /// Frames handed out (or skipped) so far: the position of the next one.
     fn position(&self) -> u64;
-    /// Skip forward so the next frame is the one at `position` (resuming a stream).
-    fn seek(&mut self, position: u64) -> Result<()>;
+    /// Names of the frames handed out so far, in arrival order, where the order cannot be
+    /// recomputed from the position alone (a watched folder); saved in the stream checkpoint.
+    fn arrived(&self) -> &[String] {
+        &[]
+    }
+    /// Skip forward so the next frame is the one at `position` (resuming a stream); `arrived`
+    /// is what [`FrameSource::arrived`] returned when the checkpoint was written.
+    fn seek(&mut self, position: u64, arrived: &[String]) -> Result<()>;
     /// The frame at a past position again (held-out evaluation).
     fn reload(&self, position: u64) -> Result<Frame>;
 }
@@ -84,8 +97,11 @@ impl FrameSource for MaskedSource<'_> {
     fn position(&self) -> u64 {
         self.inner.position()
     }
-    fn seek(&mut self, position: u64) -> Result<()> {
-        self.inner.seek(position)
+    fn arrived(&self) -> &[String] {
+        self.inner.arrived()
+    }
+    fn seek(&mut self, position: u64, arrived: &[String]) -> Result<()> {
+        self.inner.seek(position, arrived)
     }
     fn reload(&self, position: u64) -> Result<Frame> {
         let mut frame = self.inner.reload(position)?;
@@ -127,6 +143,15 @@ impl DatasetReader {
     }
 }
 
+/// Pacing rates (frames per second) a dataset source accepts: from one frame in 1000 s to
+/// a million per second, so every due time is a representable `Duration`.
+pub const RATE_RANGE: std::ops::RangeInclusive<f64> = 1e-3..=1e6;
+
+/// `path` made absolute and free of links where it exists (as given otherwise).
+fn canonical(path: &Path) -> PathBuf {
+    path.canonicalize().unwrap_or_else(|_| path.to_path_buf())
+}
+
 /// NeRF-synthetic images are composited on white.
 const SYNTHETIC_BACKGROUND: [f32; 3] = [1.0; 3];
 
@@ -135,6 +160,17 @@ impl DatasetSource {
     /// that width and NeRF-synthetic frames to that longer side.
     pub fn open(path: &Path, width: Option<u32>, rate: Option<f64>) -> Result<DatasetSource> {
         let name = path.display().to_string();
+        if let Some(rate) = rate.filter(|r| !RATE_RANGE.contains(r)) {
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "pacing rate {rate} frames/s is outside {}..={}",
+                    RATE_RANGE.start(),
+                    RATE_RANGE.end()
+                ),
+            ));
+        }
+        let identity = format!("dataset {}", canonical(path).display());
         let transforms = if path.is_dir() {
             Some(path.join(SyntheticSplit::Train.file_name())).filter(|p| p.is_file())
         } else {
@@ -153,6 +189,7 @@ impl DatasetSource {
                 let reader = SyntheticReader::open(&json, &options)?;
                 let info = SourceInfo {
                     name,
+                    identity,
                     scene_min: nerf_synthetic::NERF_SYNTHETIC_SCENE_MIN,
                     scene_max: nerf_synthetic::NERF_SYNTHETIC_SCENE_MAX,
                     background: SYNTHETIC_BACKGROUND,
@@ -170,6 +207,7 @@ impl DatasetSource {
                 let (scene_min, scene_max) = reader.scene_box();
                 let info = SourceInfo {
                     name,
+                    identity,
                     scene_min,
                     scene_max,
                     background: [0.0; 3],
@@ -183,7 +221,7 @@ impl DatasetSource {
             reader,
             info,
             next: 0,
-            rate: rate.filter(|r| r.is_finite() && *r > 0.0),
+            rate,
             paced_since: None,
         })
     }
@@ -200,7 +238,10 @@ impl FrameSource for DatasetSource {
         }
         if let Some(rate) = self.rate {
             let (start, first) = *self.paced_since.get_or_insert((Instant::now(), self.next));
-            let due = start + Duration::from_secs_f64((self.next - first) as f64 / rate);
+            // In range for any rate in RATE_RANGE over u64 positions, but never a panic.
+            let wait = Duration::try_from_secs_f64((self.next - first) as f64 / rate)
+                .unwrap_or(Duration::MAX);
+            let due = start.checked_add(wait).unwrap_or_else(Instant::now);
             std::thread::sleep(due.saturating_duration_since(Instant::now()));
         }
         let arrival = match self.reader.frame(self.next as usize) {
@@ -215,7 +256,7 @@ impl FrameSource for DatasetSource {
         self.next
     }
 
-    fn seek(&mut self, position: u64) -> Result<()> {
+    fn seek(&mut self, position: u64, _arrived: &[String]) -> Result<()> {
         self.next = position;
         Ok(())
     }
@@ -239,8 +280,16 @@ impl<'s> SimulatorSource<'s> {
         let simulator = FrameSimulator::new(scene)?;
         let decoder = FrameDecoder::new(simulator.camera_file().clone(), None);
         let (scene_min, scene_max) = simulator.scene_box();
+        let spec = &scene.spec;
         let info = SourceInfo {
             name: format!("simulated {}", scene.origin.display()),
+            identity: format!(
+                "scene {} ({} frames, {} px, seed {})",
+                canonical(&scene.origin).display(),
+                spec.frames,
+                spec.size,
+                spec.seed
+            ),
             scene_min,
             scene_max,
             background: [0.0; 3],
@@ -257,7 +306,7 @@ impl<'s> SimulatorSource<'s> {
     }
 
     fn frame(&self, index: u32) -> Result<Frame> {
-        let simulated = self.simulator.render(index);
+        let simulated = self.simulator.render(index)?;
         let name = PathBuf::from(&simulated.filename);
         let pose = simulated
             .label
@@ -304,7 +353,7 @@ impl FrameSource for SimulatorSource<'_> {
         self.next as u64
     }
 
-    fn seek(&mut self, position: u64) -> Result<()> {
+    fn seek(&mut self, position: u64, _arrived: &[String]) -> Result<()> {
         self.next = position.min(self.frames as u64) as u32;
         Ok(())
     }
@@ -321,8 +370,8 @@ pub struct WatchOptions {
     pub poll: Duration,
     /// How long an incomplete or unreadable frame is waited for before it is reported bad.
     pub grace: Duration,
-    /// End the stream after this long with no new file.
-    pub idle_timeout: Duration,
+    /// End the stream after this long with no new file; `None` waits for ever.
+    pub idle_timeout: Option<Duration>,
 }
 
 /// Image extensions a watched folder's frames may have.
@@ -338,6 +387,8 @@ pub struct WatchedFolder {
     options: WatchOptions,
     /// Frame names handed out so far, in arrival order.
     names: Vec<String>,
+    /// The same names, for lookups.
+    taken: BTreeSet<String>,
 }
 
 impl WatchedFolder {
@@ -355,6 +406,7 @@ impl WatchedFolder {
         };
         let info = SourceInfo {
             name: dir.display().to_string(),
+            identity: format!("watched folder {}", canonical(dir).display()),
             scene_min,
             scene_max,
             background: [0.0; 3],
@@ -367,10 +419,11 @@ impl WatchedFolder {
             info,
             options,
             names: Vec::new(),
+            taken: BTreeSet::new(),
         })
     }
 
-    /// Names of the frames with at least one file in the folder, sorted.
+    /// Names of the frames with at least one file in the folder, in natural order.
     fn listed(&self) -> Result<Vec<String>> {
         let mut names: Vec<String> = std::fs::read_dir(&self.dir)
             .map_err(|e| HostError::io(&self.dir, e))?
@@ -384,7 +437,7 @@ impl WatchedFolder {
                 (is_frame_file && !stem.starts_with('.') && !stem.contains('.')).then_some(stem)
             })
             .collect();
-        names.sort();
+        names.sort_by(|a, b| natural_order(a, b));
         names.dedup();
         Ok(names)
     }
@@ -428,10 +481,7 @@ impl FrameSource for WatchedFolder {
                 Ok(listed) => listed,
                 Err(e) => return Some(Arrival::Bad(e)),
             };
-            let newest = self.names.last();
-            let candidate = listed
-                .into_iter()
-                .find(|name| newest.is_none_or(|last| name > last));
+            let candidate = listed.into_iter().find(|name| !self.taken.contains(name));
             match candidate {
                 Some(name) => {
                     let since = match &pending {
@@ -440,6 +490,7 @@ impl FrameSource for WatchedFolder {
                     };
                     let result = self.read(&name);
                     if result.is_ok() || since.elapsed() >= self.options.grace {
+                        self.taken.insert(name.clone());
                         self.names.push(name);
                         return Some(match result {
                             Ok(frame) => Arrival::Frame(frame),
@@ -451,7 +502,10 @@ impl FrameSource for WatchedFolder {
                 }
                 None => {
                     if self.dir.join(END_MARKER).exists()
-                        || last_change.elapsed() >= self.options.idle_timeout
+                        || self
+                            .options
+                            .idle_timeout
+                            .is_some_and(|timeout| last_change.elapsed() >= timeout)
                     {
                         return None;
                     }
@@ -466,18 +520,28 @@ impl FrameSource for WatchedFolder {
         self.names.len() as u64
     }
 
-    fn seek(&mut self, position: u64) -> Result<()> {
-        let listed = self.listed()?;
-        if (listed.len() as u64) < position {
+    fn arrived(&self) -> &[String] {
+        &self.names
+    }
+
+    fn seek(&mut self, position: u64, arrived: &[String]) -> Result<()> {
+        if arrived.len() as u64 != position {
             return Err(HostError::invalid(
                 &self.dir,
                 format!(
-                    "cannot resume at frame {position}: the folder holds only {}",
-                    listed.len()
+                    "cannot resume at frame {position}: the checkpoint names {} frames taken",
+                    arrived.len()
                 ),
             ));
         }
-        self.names = listed.into_iter().take(position as usize).collect();
+        if let Some(missing) = arrived.iter().find(|name| self.image_path(name).is_none()) {
+            return Err(HostError::invalid(
+                self.dir.join(missing),
+                "taken before the checkpoint but no longer in the folder; cannot resume",
+            ));
+        }
+        self.names = arrived.to_vec();
+        self.taken = arrived.iter().cloned().collect();
         Ok(())
     }
 
@@ -486,5 +550,51 @@ impl FrameSource for WatchedFolder {
             HostError::invalid(&self.dir, format!("no frame at position {position}"))
         })?;
         self.read(name)
+    }
+}
+
+/// Natural order of frame names: runs of digits compare as numbers (`img2` < `img10`), the
+/// rest as text; names equal that way (`img02`, `img2`) fall back to plain text order.
+fn natural_order(a: &str, b: &str) -> Order {
+    fn chunks(name: &str) -> impl Iterator<Item = (bool, &str)> {
+        let mut rest = name;
+        std::iter::from_fn(move || {
+            let first = rest.chars().next()?;
+            let digits = first.is_ascii_digit();
+            let end = rest
+                .find(|c: char| c.is_ascii_digit() != digits)
+                .unwrap_or(rest.len());
+            let (chunk, tail) = rest.split_at(end);
+            rest = tail;
+            Some((digits, chunk))
+        })
+    }
+    let (mut left, mut right) = (chunks(a), chunks(b));
+    loop {
+        let order = match (left.next(), right.next()) {
+            (None, None) => return a.cmp(b),
+            (None, Some(_)) => Order::Less,
+            (Some(_), None) => Order::Greater,
+            (Some((true, x)), Some((true, y))) => {
+                let (x, y) = (x.trim_start_matches('0'), y.trim_start_matches('0'));
+                x.len().cmp(&y.len()).then_with(|| x.cmp(y))
+            }
+            (Some((_, x)), Some((_, y))) => x.cmp(y),
+        };
+        if order != Order::Equal {
+            return order;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::natural_order;
+
+    #[test]
+    fn natural_order_compares_counters_as_numbers() {
+        let mut names = vec!["img10", "img2", "img1", "b", "img02", "a9"];
+        names.sort_by(|a, b| natural_order(a, b));
+        assert_eq!(names, ["a9", "b", "img1", "img02", "img2", "img10"]);
     }
 }

@@ -238,7 +238,7 @@ impl Chunk<'_> {
                         d_sh[k] = grad.colour_in[k][l];
                     }
                     let d_view = Vec3::from_array(field::sh_backward(
-                        c.sh_degree as usize,
+                        c.sh_bands as usize,
                         d.to_array(),
                         &d_sh[..sh_len],
                     ));

@@ -37,18 +37,18 @@ impl<'a> Trainer<'a> {
         let c = &self.config;
         let step = self.state.step as u64;
         for r in 0..c.rays_per_batch as usize {
-            let bits = rng::hash(c.seed, stream::RAY_PICK, step, r as u64);
+            let bits = rng::hash(c.seed, domain::RAY_PICK, step, r as u64);
             let slot = self
                 .frames
                 .occupied_slot(rng::below(bits, count) as usize)
                 .unwrap_or(0);
             let meta = self.frames.meta[slot];
             let camera = meta.camera();
-            let bits = rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 1 << 40);
+            let bits = rng::hash(c.seed, domain::RAY_PICK, step, (r as u64) | 1 << 40);
             let in_foreground = c.foreground_fraction > 0.0
                 && rng::unit_f32(rng::hash(
                     c.seed,
-                    stream::RAY_PICK,
+                    domain::RAY_PICK,
                     step,
                     (r as u64) | 2 << 40,
                 )) < c.foreground_fraction;
@@ -80,7 +80,7 @@ impl<'a> Trainer<'a> {
                 _ => 1.0,
             };
             let background = if alpha < 1.0 {
-                let bits = rng::hash(c.seed, stream::RAY_PICK, step, (r as u64) | 3 << 40);
+                let bits = rng::hash(c.seed, domain::RAY_PICK, step, (r as u64) | 3 << 40);
                 [0, 21, 42].map(|shift| ((bits >> shift) & 0x1f_ffff) as f32 / 0x1f_ffff as f32)
             } else {
                 c.background

@@ -69,13 +69,7 @@ impl<'a> Trainer<'a> {
             ($trainer:ident; $($name:literal => $($field:ident).+,)*) => {
                 match name {
                     $($name => ($name, $trainer.$($field).+.bytes_mut()),)*
-                    _ => {
-                        return Err(Error::BadSection {
-                            name: "unknown",
-                            expected: 0,
-                            got: data.len(),
-                        });
-                    }
+                    _ => return Err(Error::UnknownSection),
                 }
             };
         }
@@ -87,10 +81,13 @@ impl<'a> Trainer<'a> {
                 got: data.len(),
             });
         }
+        if let Some(index) = first_non_finite(name, data) {
+            return Err(Error::NonFiniteSection { name, index });
+        }
         if name == "frame_meta" {
             // Slot sizes index the pixel store: reject any that would not fit.
             let size = core::mem::size_of::<FrameMeta>();
-            for raw in data.chunks_exact(size) {
+            for (slot, raw) in data.chunks_exact(size).enumerate() {
                 let meta: FrameMeta = bytemuck::pod_read_unaligned(raw);
                 let pixels = meta.width as usize * meta.height as usize;
                 if meta.occupied != 0
@@ -99,11 +96,7 @@ impl<'a> Trainer<'a> {
                         || meta.width > u16::MAX as u32
                         || meta.height > u16::MAX as u32)
                 {
-                    return Err(Error::BadSection {
-                        name,
-                        expected: 0,
-                        got: data.len(),
-                    });
+                    return Err(Error::BadFrameSlot { slot });
                 }
             }
         }
@@ -112,5 +105,56 @@ impl<'a> Trainer<'a> {
             self.frames.rebuild_occupied();
         }
         Ok(())
+    }
+}
+
+/// The first non-finite element of a section of parameters, moments or densities (f16
+/// planes, f32 otherwise); `None` for finite data and for sections of other kinds.
+fn first_non_finite(name: &str, data: &[u8]) -> Option<usize> {
+    match name {
+        "planes" => data
+            .chunks_exact(2)
+            .position(|b| !f16::from_ne_bytes([b[0], b[1]]).is_finite()),
+        "plane_master" | "plane_m" | "plane_v" | "mlp" | "mlp_m" | "mlp_v"
+        | "occupancy_density" | "frame_params" | "frame_m" | "frame_v" => data
+            .chunks_exact(4)
+            .position(|b| !f32::from_ne_bytes([b[0], b[1], b[2], b[3]]).is_finite()),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::tests::{put_test_frame, small_config};
+    use super::*;
+
+    /// Every section restores into a fresh trainer; a frame slot larger than a slot holds, or
+    /// an unknown section, is refused with an error that says which.
+    #[test]
+    fn sections_round_trip_and_bad_frame_slots_are_named() {
+        let config = small_config();
+        let plan = MemoryPlan::new(&config);
+        let mut arena = [0u8; 1 << 20];
+        let (first, second) = arena.split_at_mut(1 << 19);
+        let mut trainer = Trainer::new(config, &mut first[..plan.total]).unwrap();
+        put_test_frame(&mut trainer);
+        let mut copy = Trainer::new(config, &mut second[..plan.total]).unwrap();
+        for (name, bytes) in trainer.sections() {
+            copy.restore_section(name, bytes).unwrap();
+        }
+        assert_eq!(copy.sections(), trainer.sections());
+
+        let mut meta = trainer.frames.meta[0];
+        meta.width = 1000;
+        let mut bytes = [0u8; 2 * core::mem::size_of::<FrameMeta>()];
+        bytes[core::mem::size_of::<FrameMeta>()..].copy_from_slice(bytemuck::bytes_of(&meta));
+        assert_eq!(
+            copy.restore_section("frame_meta", &bytes),
+            Err(Error::BadFrameSlot { slot: 1 })
+        );
+        assert_eq!(
+            copy.restore_section("frame_metadata", &bytes),
+            Err(Error::UnknownSection)
+        );
     }
 }

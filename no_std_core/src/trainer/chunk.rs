@@ -92,7 +92,7 @@ impl Chunk<'_> {
             let jitter = if shared.jitter {
                 rng::unit_f32(rng::hash(
                     c.seed,
-                    stream::RAY_JITTER,
+                    domain::RAY_JITTER,
                     shared.draw_counter as u64,
                     r as u64,
                 ))
@@ -227,7 +227,7 @@ impl Chunk<'_> {
             let s = base + l;
             let r = sample_ray[s] as usize;
             let (_, d) = Self::ray(shared, r);
-            field::sh_forward(c.sh_degree as usize, d.to_array(), &mut sh);
+            field::sh_forward(c.sh_bands as usize, d.to_array(), &mut sh);
             for k in 0..sh_len {
                 colour_in[k][l] = sh[k];
             }
@@ -293,7 +293,7 @@ impl Chunk<'_> {
                 );
                 let bits = rng::hash(
                     c.seed,
-                    stream::OCCUPANCY,
+                    domain::OCCUPANCY,
                     shared.draw_counter as u64,
                     i as u64,
                 );

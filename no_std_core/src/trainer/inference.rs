@@ -23,6 +23,7 @@ impl<'a> Trainer<'a> {
         steps: u32,
         embedding: &mut [f32],
     ) -> Result<f32, Error> {
+        self.require_training()?;
         let c = self.config;
         let dim = c.embedding_dim as usize;
         if embedding.len() != dim {
@@ -53,7 +54,7 @@ impl<'a> Trainer<'a> {
         let mut mse = 0.0;
         for step in 0..steps {
             for r in 0..c.rays_per_batch as usize {
-                let bits = rng::hash(c.seed, stream::FIT, step as u64, r as u64);
+                let bits = rng::hash(c.seed, domain::FIT, step as u64, r as u64);
                 let i = x0 + rng::below(bits, x1 - x0);
                 let j = rng::below(bits.rotate_right(32), camera.height as u32);
                 let (o, d) = Self::pixel_ray(camera, pose, i, j);

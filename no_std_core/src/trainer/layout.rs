@@ -6,14 +6,33 @@ use super::*;
 impl<'a> Trainer<'a> {
     /// Validate `config`, lay out `arena` and initialise the parameters from the seed.
     pub fn new(config: Config, arena: &'a mut [u8]) -> Result<Self, Error> {
+        Self::carve(config, arena, true)
+    }
+
+    /// A trainer that can only render: `arena` holds [`MemoryPlan::render_only`] (planes, MLP
+    /// weights, occupancy bits, rays, forward buffers), to be filled with
+    /// [`Trainer::restore_section`] ("planes", "mlp", "occupancy_bits"). Training, embedding
+    /// fits, occupancy refreshes and frames are refused with [`Error::RenderOnly`].
+    pub fn new_render_only(config: Config, arena: &'a mut [u8]) -> Result<Self, Error> {
+        Self::carve(config, arena, false)
+    }
+
+    /// Lay out the whole plan (`training`) or the render-only one: the parts the latter
+    /// leaves out are carved with length zero.
+    fn carve(config: Config, arena: &'a mut [u8], training: bool) -> Result<Self, Error> {
         config.validate()?;
-        let plan = MemoryPlan::new(&config);
+        let plan = if training {
+            MemoryPlan::new(&config)
+        } else {
+            MemoryPlan::render_only(&config)
+        };
         let mut carver = Carver::new(arena, plan.total)?;
+        let t = |len: usize| if training { len } else { 0 };
         let c = &config;
         let params = c.plane_params();
         let words = c.texels().div_ceil(64);
         let mlp_len = c.mlp().total;
-        let frames = c.max_frames as usize;
+        let frames = t(c.max_frames as usize);
         let frame_params = c.frame_params();
         let chunks = c.chunks as usize;
         let samples = c.samples_per_chunk as usize;
@@ -27,35 +46,35 @@ impl<'a> Trainer<'a> {
 
         let planes = carver.take::<f16>(params)?;
         tally(&carver, &mut used.planes);
-        let master_len = if c.texel_update == TexelUpdate::MasterCopy {
+        let master_len = if training && c.texel_update == TexelUpdate::MasterCopy {
             params
         } else {
             0
         };
         let plane_master = carver.take::<f32>(master_len)?;
         tally(&carver, &mut used.plane_master);
-        let plane_m = carver.take::<f32>(params)?;
-        let plane_v = carver.take::<f32>(params)?;
+        let plane_m = carver.take::<f32>(t(params))?;
+        let plane_v = carver.take::<f32>(t(params))?;
         tally(&carver, &mut used.plane_moments);
         let mut plane_grad_parts: heapless::Vec<(&mut [f32], &mut [u64]), MAX_CHUNKS> =
             heapless::Vec::new();
         for _ in 0..chunks {
-            let g = carver.take::<f32>(params)?;
-            let t = carver.take::<u64>(words)?;
-            let _ = plane_grad_parts.push((g, t));
+            let grads = carver.take::<f32>(t(params))?;
+            let touched = carver.take::<u64>(t(words))?;
+            let _ = plane_grad_parts.push((grads, touched));
         }
-        let touched_union = carver.take::<u64>(words)?;
+        let touched_union = carver.take::<u64>(t(words))?;
         tally(&carver, &mut used.plane_grads);
         let mlp = carver.take::<f32>(mlp_len)?;
-        let mlp_m = carver.take::<f32>(mlp_len)?;
-        let mlp_v = carver.take::<f32>(mlp_len)?;
+        let mlp_m = carver.take::<f32>(t(mlp_len))?;
+        let mlp_v = carver.take::<f32>(t(mlp_len))?;
         let mut mlp_grad_parts: heapless::Vec<&mut [f32], MAX_CHUNKS> = heapless::Vec::new();
         for _ in 0..chunks {
-            let _ = mlp_grad_parts.push(carver.take::<f32>(mlp_len)?);
+            let _ = mlp_grad_parts.push(carver.take::<f32>(t(mlp_len))?);
         }
         tally(&carver, &mut used.mlp);
         let occupancy_bits = carver.take::<u64>(c.occupancy_cells().div_ceil(64))?;
-        let occupancy_density = carver.take::<f32>(c.occupancy_cells())?;
+        let occupancy_density = carver.take::<f32>(t(c.occupancy_cells()))?;
         tally(&carver, &mut used.occupancy);
         let pixels = carver.take::<u8>(frames * c.max_pixels_per_frame as usize * 3)?;
         let masks = carver.take::<u8>(frames * c.max_pixels_per_frame as usize)?;
@@ -70,7 +89,7 @@ impl<'a> Trainer<'a> {
         }
         tally(&carver, &mut used.frames);
         let rays = carver.take::<BatchRay>(c.rays_per_batch as usize)?;
-        let ray_frames = carver.take::<u32>(c.rays_per_batch as usize)?;
+        let ray_frames = carver.take::<u32>(t(c.rays_per_batch as usize))?;
         tally(&carver, &mut used.ray_batch);
         let mut chunk_list = heapless::Vec::new();
         let rows = activation_floats(c);
@@ -80,19 +99,23 @@ impl<'a> Trainer<'a> {
             .zip(mlp_grad_parts.into_iter().zip(frame_grad_parts))
             .enumerate()
         {
-            let block = carver.take::<f32>(samples * sample_floats(c))?;
+            let block = carver.take::<f32>(if training {
+                samples * sample_floats(c)
+            } else {
+                samples * forward_sample_floats(c)
+            })?;
             let (positions, block) = block.split_at_mut(3 * samples);
             let (sigma, block) = block.split_at_mut(samples);
             let (geo, block) = block.split_at_mut(geo_len * samples);
             let (rgb, block) = block.split_at_mut(3 * samples);
-            let (d_sigma, d_rgb) = block.split_at_mut(samples);
+            let (d_sigma, d_rgb) = block.split_at_mut(t(samples));
             let sample_ray = carver.take::<u32>(samples)?;
             let ray_start = carver.take::<u32>(chunk_rays + 1)?;
-            let act = carver.take::<Row>(2 * rows)?;
+            let act = carver.take::<Row>(rows + t(rows))?;
             let (activations, gradients) = act.split_at_mut(rows);
             let plane_values = carver.take::<f32>(LANES * 3 * c.density_inputs())?;
-            let lane_major = carver.take::<f32>(LANES * widest_layer(c))?;
-            let ray_grads = carver.take::<f32>(chunk_rays * 6)?;
+            let lane_major = carver.take::<f32>(t(LANES * widest_layer(c)))?;
+            let ray_grads = carver.take::<f32>(t(chunk_rays * 6))?;
             let chunk = Chunk {
                 plane_grads,
                 touched,
@@ -148,7 +171,7 @@ impl<'a> Trainer<'a> {
                 masks,
                 occupied,
                 len: 0,
-                max_pixels: c.max_pixels_per_frame as usize,
+                max_pixels: t(c.max_pixels_per_frame as usize),
             },
             frame_params: frame_param_slice,
             frame_m,
@@ -158,6 +181,7 @@ impl<'a> Trainer<'a> {
             chunks: chunk_list,
             state: TrainState::default(),
             used,
+            training,
         };
         trainer.initialise();
         Ok(trainer)
@@ -167,7 +191,7 @@ impl<'a> Trainer<'a> {
     /// uniform in ±sqrt(6 / fan_in) (He), zero biases; every occupancy cell occupied.
     fn initialise(&mut self) {
         let c = &self.config;
-        let mut rng = rng::Rng::new(rng::hash(c.seed, stream::INIT, 0, 0));
+        let mut rng = rng::Rng::new(rng::hash(c.seed, domain::INIT, 0, 0));
         for (i, t) in self.planes.iter_mut().enumerate() {
             let v = c.init_low + (c.init_high - c.init_low) * rng.uniform();
             *t = f16::from_f32(v);

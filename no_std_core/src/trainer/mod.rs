@@ -15,15 +15,15 @@
 use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
-    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats, sample_floats,
-    widest_layer,
+    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats,
+    forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
 use crate::optim::{self, AdamStep};
 use crate::render::{self, Aabb, OccupancyView};
-use crate::rng::{self, stream};
-use crate::stream::{self as admission, Descriptor, Ingested};
+use crate::replacement::{self, Descriptor, Ingested};
+use crate::rng::{self, domain};
 use crate::{Camera, Error, Pose, PoseCorrection};
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
@@ -47,6 +47,7 @@ use chunk::Chunk;
 /// Runs a closure over every item, possibly in parallel. Results must not depend on the
 /// order or the thread: the core gives each item its own buffers.
 pub trait Executor {
+    /// Call `f` once on every element of `items`, in any order and on any thread.
     fn for_each<T: Send, F: Fn(&mut T) + Sync>(&self, items: &mut [T], f: F);
 }
 
@@ -65,6 +66,7 @@ impl Executor for Sequential {
 pub struct StepReport {
     /// Mean squared error per channel over the rays that were rendered.
     pub mse: f32,
+    /// Rays rendered and trained on (the batch less the dropped rays).
     pub rays: u32,
     /// Samples that reached the colour MLP and the backward pass (before the early stop).
     pub samples: u32,
@@ -116,6 +118,8 @@ pub struct Trainer<'a> {
     chunks: heapless::Vec<Chunk<'a>, MAX_CHUNKS>,
     state: TrainState,
     used: MemoryPlan,
+    /// False for a render-only trainer ([`Trainer::new_render_only`]).
+    training: bool,
 }
 
 /// What the chunks are run for. It decides the appearance embedding they use, the counter
@@ -170,6 +174,7 @@ struct Shared<'s> {
 }
 
 impl<'a> Trainer<'a> {
+    /// The config the trainer was built with.
     pub fn config(&self) -> &Config {
         &self.config
     }
@@ -180,20 +185,33 @@ impl<'a> Trainer<'a> {
         self.used
     }
 
+    /// Step, update, skip and refresh counters.
     pub fn state(&self) -> TrainState {
         self.state
     }
 
+    /// The frame slots: pixels, cameras, poses and which slots are occupied.
     pub fn frames(&self) -> &FrameStore<'a> {
         &self.frames
     }
 
+    /// The f16 texels of every plane, scale by scale.
     pub fn planes(&self) -> &[f16] {
         self.planes
     }
 
+    /// All MLP weights and biases, laid out as `Config::mlp`.
     pub fn mlp_parameters(&self) -> &[f32] {
         self.mlp
+    }
+
+    /// `Err(RenderOnly)` for a render-only trainer: the guard of every training operation.
+    fn require_training(&self) -> Result<(), Error> {
+        if self.training {
+            Ok(())
+        } else {
+            Err(Error::RenderOnly)
+        }
     }
 
     /// The read-only view of the model the chunks work with during `pass`.

@@ -13,6 +13,10 @@ impl<'a> Trainer<'a> {
     /// decayed maximum, and mark cells whose opacity over one marching step exceeds the
     /// threshold as occupied.
     pub fn refresh_occupancy<E: Executor>(&mut self, executor: &E) {
+        // A render-only trainer has no running densities to refresh.
+        if !self.training {
+            return;
+        }
         let c = self.config;
         let cells = c.occupancy_cells();
         let density = core::mem::take(&mut self.occupancy_density);
@@ -52,6 +56,12 @@ impl<'a> Trainer<'a> {
                 bits |= ((*d * self.step_size > threshold) as u64) << b;
             }
             *word = bits;
+        }
+        // A grid with no occupied cell samples nothing, so nothing could ever learn again
+        // (all densities underflowed, or all equal to their mean): re-open every cell and
+        // let the next refresh cull from what training has learned by then.
+        if self.occupancy_bits.iter().all(|word| *word == 0) {
+            self.occupancy_bits.fill(u64::MAX);
         }
         self.state.refreshes += 1;
     }

@@ -35,6 +35,7 @@ impl<'a> Trainer<'a> {
         pixels: &[u8],
         mask: Option<&[u8]>,
     ) -> Result<(), Error> {
+        self.require_training()?;
         self.frames.set(slot, camera, pose, pixels, mask)?;
         let n = self.config.frame_params();
         let dim = self.config.embedding_dim as usize;
@@ -61,6 +62,7 @@ impl<'a> Trainer<'a> {
         Ok(())
     }
 
+    /// Empty frame slot `slot` (no-op if it is already empty or out of range).
     pub fn clear_frame(&mut self, slot: usize) {
         self.frames.clear(slot);
     }
@@ -68,7 +70,7 @@ impl<'a> Trainer<'a> {
     /// Stream a frame into the store. `arrival` counts the frames offered before it (it keys
     /// the policy's randomness and is kept with the slot). The frame is checked as `set_frame`
     /// checks it and refused if all black or all saturated; then the config's replacement
-    /// policy (`stream.rs`) picks its slot or turns it away. A stored frame's per-frame state
+    /// policy (`replacement.rs`) picks its slot or turns it away. A stored frame's per-frame state
     /// is reset as `set_frame` does.
     pub fn ingest_frame(
         &mut self,
@@ -78,10 +80,11 @@ impl<'a> Trainer<'a> {
         pixels: &[u8],
         mask: Option<&[u8]>,
     ) -> Result<Ingested, Error> {
+        self.require_training()?;
         self.frames.check(&camera, &pose, pixels, mask)?;
-        admission::check_exposure(pixels)?;
+        replacement::check_exposure(pixels)?;
         let incoming = Descriptor::new(&self.config, &pose, mean_brightness(pixels));
-        let Some(slot) = admission::choose_slot(&self.config, &self.frames, &incoming, arrival)
+        let Some(slot) = replacement::choose_slot(&self.config, &self.frames, &incoming, arrival)
         else {
             return Ok(Ingested::Rejected);
         };

@@ -7,6 +7,7 @@ impl<'a> Trainer<'a> {
     /// One training step. Returns what it did; a step whose loss or gradients are not finite
     /// is counted and skipped, leaving the parameters untouched.
     pub fn step<E: Executor>(&mut self, executor: &E) -> Result<StepReport, Error> {
+        self.require_training()?;
         self.forward_backward(executor)?;
         let report = self.reduce_and_apply();
         self.state.step += 1;

@@ -1,4 +1,5 @@
-//! Gradient checks of the training pass against finite differences.
+//! Gradient checks of the training pass against finite differences, and the guards that
+//! keep a trainer from getting stuck (a dead occupancy grid, a non-finite checkpoint).
 
 use super::*;
 use crate::PosePivot;
@@ -7,7 +8,7 @@ use glam::Mat3;
 /// A small field with embeddings and pose correction, one 8x8 frame seen from inside the
 /// box (so every ray starts at t = 0 and the sample lattice does not move with the pose;
 /// the gradient treats sample distances as fixed, which is exact here).
-fn small_config() -> Config {
+pub(super) fn small_config() -> Config {
     let mut c = Config::DEFAULT;
     c.scales = 2;
     c.resolutions = [8, 16, 0, 0];
@@ -15,7 +16,7 @@ fn small_config() -> Config {
     c.density_hidden = 16;
     c.geo_features = 7;
     c.colour_hidden = 16;
-    c.sh_degree = 3;
+    c.sh_bands = 3;
     c.embedding_dim = 4;
     c.pose_correction = true;
     c.occupancy_res = 8;
@@ -148,7 +149,7 @@ fn test_camera() -> Camera {
 }
 
 /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
-fn put_test_frame(trainer: &mut Trainer<'_>) {
+pub(super) fn put_test_frame(trainer: &mut Trainer<'_>) {
     let camera = test_camera();
     let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
     let pose = Pose {
@@ -189,6 +190,58 @@ fn check_frame_gradients(config: Config) {
             "{:?}, parameter {i}: analytic {} vs numeric {numeric}",
             config.pose_pivot,
             analytic[i]
+        );
+    }
+}
+
+#[test]
+fn a_dead_occupancy_grid_reopens_so_training_keeps_sampling() {
+    // Zero planes give every cell exactly the same density, equal to the mean the threshold
+    // is capped at, so no cell exceeds it: the grid would sample nothing ever again.
+    let mut config = small_config();
+    config.init_low = 0.0;
+    config.init_high = 0.0;
+    config.occupancy_threshold = 1e30;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    trainer.refresh_occupancy(&Sequential);
+    assert_eq!(trainer.occupancy_fraction(), 1.0);
+    put_test_frame(&mut trainer);
+    let report = trainer.step(&Sequential).unwrap();
+    assert!(report.samples > 0 && !report.skipped, "{report:?}");
+}
+
+#[test]
+fn a_checkpoint_section_with_a_nan_or_an_infinity_is_refused() {
+    let config = small_config();
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    let mut buffer = [0u8; 1 << 16];
+    let nan = f32::NAN.to_ne_bytes();
+    let inf = f32::INFINITY.to_ne_bytes();
+    let f16_inf = f16::NEG_INFINITY.to_ne_bytes();
+    for (name, at, value) in [
+        ("mlp", 4, &nan[..]),
+        ("frame_params", 0, &inf[..]),
+        ("planes", 2, &f16_inf[..]),
+    ] {
+        let saved = trainer
+            .sections()
+            .iter()
+            .find(|(n, _)| *n == name)
+            .unwrap()
+            .1;
+        let bytes = &mut buffer[..saved.len()];
+        bytes.copy_from_slice(saved);
+        bytes[at..at + value.len()].copy_from_slice(value);
+        assert_eq!(
+            trainer.restore_section(name, bytes),
+            Err(Error::NonFiniteSection {
+                name,
+                index: at / value.len()
+            })
         );
     }
 }

@@ -1,5 +1,5 @@
-//! Streaming frames into the fixed-capacity frame store: which slot an arriving frame takes
-//! once the store is full, or whether it is turned away.
+//! The replacement policy of the fixed-capacity frame store: which slot an arriving frame
+//! takes once the store is full, or whether it is turned away.
 //!
 //! Each frame is described by its view direction (the unit vector from the centre of the
 //! scene box to the camera) and its mean brightness (a cheap illumination descriptor). The
@@ -18,12 +18,12 @@
 //!   while, as with FIFO) and replaces the most redundant held frame, as above: distinct views
 //!   and lighting stay, near-duplicates cycle.
 //!
-//! The admission draw comes from the core's seeded RNG (its own stream), keyed by the arrival
+//! The admission draw comes from the core's seeded RNG (its own domain), keyed by the arrival
 //! number, so the held set depends only on the config, the seed and the arrival order.
 
 use crate::config::{Config, Replacement};
 use crate::frames::{FrameMeta, FrameStore};
-use crate::rng::{self, stream};
+use crate::rng::{self, domain};
 use crate::{Error, Pose};
 use glam::Vec3;
 
@@ -32,7 +32,10 @@ use glam::Vec3;
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Ingested {
     /// Stored in `slot`, replacing whatever it held.
-    Stored { slot: usize },
+    Stored {
+        /// Index of the frame slot that now holds the frame.
+        slot: usize,
+    },
     /// The policy kept the held frames instead.
     Rejected,
 }
@@ -47,6 +50,7 @@ pub struct Descriptor {
 }
 
 impl Descriptor {
+    /// Describe a frame taken from `pose` with mean pixel value `brightness`.
     pub fn new(config: &Config, pose: &Pose, brightness: f32) -> Descriptor {
         let centre = 0.5 * (Vec3::from_array(config.aabb_min) + Vec3::from_array(config.aabb_max));
         let offset = pose.center - centre;
@@ -194,7 +198,7 @@ fn novelty_reservoir(
         1.0
     };
     let odds = frames.capacity() as f32 / (arrival as f32 + 1.0) * ratio;
-    let draw = rng::unit_f32(rng::hash(config.seed, stream::ADMIT, arrival as u64, 0));
+    let draw = rng::unit_f32(rng::hash(config.seed, domain::ADMIT, arrival as u64, 0));
     // A NaN descriptor compares false here and keeps the held frames.
     if draw < odds { victim } else { None }
 }

@@ -1,0 +1,118 @@
+//! The memory a command will need, checked against a limit before anything large is
+//! allocated, so that a size that cannot fit fails with the plan's numbers instead of
+//! aborting with `memory allocation failed` part-way through.
+
+use crate::error::{HostError, Result};
+use orbit_nerf_core::MemoryPlan;
+use std::path::Path;
+
+/// Share of the machine's available memory a command may plan for when no limit is given.
+pub const DEFAULT_SHARE_OF_AVAILABLE: f64 = 0.8;
+
+/// Memory available to new allocations on this machine (`MemAvailable` of `/proc/meminfo`),
+/// in bytes; `None` where it cannot be read.
+pub fn available_bytes() -> Option<u64> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
+/// The limit to plan against: the user's, else a share of the available memory, else none.
+pub fn limit_or_default(user: Option<u64>) -> Option<u64> {
+    user.or_else(|| {
+        available_bytes().map(|bytes| (bytes as f64 * DEFAULT_SHARE_OF_AVAILABLE) as u64)
+    })
+}
+
+/// One named part of a plan, in bytes.
+pub type Part = (&'static str, u64);
+
+/// Fail, naming `what` and listing `parts`, when their sum exceeds `limit`.
+pub fn check_plan(what: &Path, parts: &[Part], limit: Option<u64>) -> Result<()> {
+    let total = parts
+        .iter()
+        .fold(0u64, |total, (_, bytes)| total.saturating_add(*bytes));
+    let Some(limit) = limit else {
+        return Ok(());
+    };
+    if total <= limit {
+        return Ok(());
+    }
+    let listed: Vec<String> = parts
+        .iter()
+        .filter(|(_, bytes)| *bytes > 0)
+        .map(|(name, bytes)| format!("{name} {}", human(*bytes)))
+        .collect();
+    Err(HostError::invalid(
+        what,
+        format!(
+            "needs {} ({}), more than the memory limit of {}; lower the sizes or raise --memory-limit",
+            human(total),
+            listed.join(", "),
+            human(limit)
+        ),
+    ))
+}
+
+/// The parts of the core's memory plan (the arena) as named byte counts.
+pub fn arena_parts(plan: &MemoryPlan) -> [Part; 9] {
+    [
+        ("planes", plan.planes as u64),
+        ("plane master copy", plan.plane_master as u64),
+        ("plane moments", plan.plane_moments as u64),
+        ("plane gradients", plan.plane_grads as u64),
+        ("MLPs", plan.mlp as u64),
+        ("occupancy", plan.occupancy as u64),
+        ("frame store", plan.frames as u64),
+        ("ray batch", plan.ray_batch as u64),
+        ("samples", plan.samples as u64),
+    ]
+}
+
+/// Check the arena of `plan` (its total, which also counts alignment and small parts)
+/// against `limit`, naming `what` in the error.
+pub fn check_arena(what: &Path, plan: &MemoryPlan, limit: Option<u64>) -> Result<()> {
+    let parts = arena_parts(plan);
+    let listed: u64 = parts.iter().map(|(_, bytes)| *bytes).sum();
+    let mut all = parts.to_vec();
+    all.push(("other", (plan.total as u64).saturating_sub(listed)));
+    check_plan(what, &all, limit)
+}
+
+/// Bytes as MiB or GiB, for messages.
+pub fn human(bytes: u64) -> String {
+    let mib = bytes as f64 / (1u64 << 20) as f64;
+    if mib >= 1024.0 {
+        format!("{:.1} GiB", mib / 1024.0)
+    } else {
+        format!("{mib:.1} MiB")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_plan_over_the_limit_fails_with_its_numbers() {
+        let parts = [("planes", 3 << 30), ("frames", 2 << 30), ("rays", 0)];
+        let error = check_plan(Path::new("run"), &parts, Some(1 << 30))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("needs 5.0 GiB"), "{error}");
+        assert!(error.contains("planes 3.0 GiB, frames 2.0 GiB"), "{error}");
+        assert!(!error.contains("rays"), "{error}");
+        assert!(error.contains("limit of 1.0 GiB"), "{error}");
+        assert!(check_plan(Path::new("run"), &parts, Some(5 << 30)).is_ok());
+        assert!(check_plan(Path::new("run"), &[("x", u64::MAX), ("y", 9)], None).is_ok());
+        assert!(check_plan(Path::new("run"), &[("x", u64::MAX), ("y", 9)], Some(1)).is_err());
+    }
+
+    #[test]
+    fn this_machine_reports_its_available_memory() {
+        if Path::new("/proc/meminfo").exists() {
+            assert!(available_bytes().is_some_and(|bytes| bytes > 0));
+        }
+    }
+}

@@ -1,0 +1,489 @@
+//! The hard-case suite (issue 13): inputs an adversarial user would try, each run through the
+//! CLI binary or the public API, each with the outcome it must have: one clear error naming
+//! the flag, file or field (never a panic, a hang or an abort), a refused save, nothing the
+//! user did not name deleted or replaced, or training that stays finite.
+//!
+//! Cases that need the reference data in `../shared/data` (presets, camera file) say so and
+//! pass without it. The README's "Hard cases" section lists every case with its command.
+
+mod common;
+
+use common::{orbit_nerf, output_text as text, root};
+use orbit_nerf_host::formats::speedplus::{self, Label};
+use orbit_nerf_host::sim::{self, Scene};
+use orbit_nerf_host::stream::{Arrival, FrameSource, WatchOptions, WatchedFolder};
+use std::path::{Path, PathBuf};
+use std::process::Output;
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+/// A fresh folder for one case, removed when dropped (also when the case fails).
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(case: &str) -> Scratch {
+        Scratch(common::temp_dir(case))
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// The run failed cleanly: a non-zero exit that is not a panic or a signal, no score printed,
+/// and a message that contains every one of `needles`.
+fn assert_clear_error(case: &str, out: &Output, needles: &[&str]) {
+    let text = text(out);
+    assert!(
+        out.status.code().is_some_and(|code| code != 0),
+        "{case}: expected a clean non-zero exit, got {:?}: {text}",
+        out.status
+    );
+    assert!(!text.contains("panicked"), "{case}: panicked: {text}");
+    assert!(!text.contains("PSNR"), "{case}: printed a score: {text}");
+    for needle in needles {
+        assert!(text.contains(needle), "{case}: `{needle}` not in: {text}");
+    }
+}
+
+fn path_str(path: &Path) -> &str {
+    path.to_str().unwrap()
+}
+
+/// Every numeric flag value that is out of range, not finite or not a number is refused by
+/// the argument parser with an error naming the flag, before any work starts (so these need no
+/// data). `inf` is accepted only where it means "for ever" (tested below).
+#[test]
+fn out_of_range_flag_values_are_refused_naming_the_flag() {
+    let scratch = Scratch::new("flags");
+    let out = scratch.path("out");
+    let cases: &[(&str, &str, &str)] = &[
+        ("stream", "--rate", "1e-300"),
+        ("stream", "--rate", "1e300"),
+        ("stream", "--rate", "0"),
+        ("stream", "--rate", "-2"),
+        ("stream", "--rate", "nan"),
+        ("stream", "--rate", "inf"),
+        ("stream", "--poll-ms", "18446744073709551615"),
+        ("stream", "--poll-ms", "0"),
+        ("stream", "--grace-ms", "18446744073709551615"),
+        ("stream", "--idle-timeout", "nan"),
+        ("stream", "--idle-timeout", "-1"),
+        ("stream", "--idle-timeout", "0"),
+        ("stream", "--idle-timeout", "1e300"),
+        ("stream", "--idle-timeout", "-inf"),
+        ("stream", "--frames", "0"),
+        ("stream", "--size", "0"),
+        ("stream", "--size", "21"),
+        ("stream", "--store", "0"),
+        ("stream", "--store", "70000"),
+        ("stream", "--steps-per-frame", "0"),
+        ("stream", "--holdout", "0"),
+        ("stream", "--holdout", "1"),
+        ("stream", "--eval-every", "0"),
+        ("stream", "--checkpoint-every", "0"),
+        ("stream", "--max-frames", "0"),
+        ("stream", "--threads", "0"),
+        ("stream", "--threads", "100000"),
+        ("simulate", "--frames", "0"),
+        ("simulate", "--size", "0"),
+        ("simulate", "--size", "-1"),
+        ("simulate", "--sheet-columns", "0"),
+        ("simulate", "--memory-limit", "0"),
+        ("simulate", "--memory-limit", "-1G"),
+        ("simulate", "--memory-limit", "99999999999T"),
+        ("stream", "--memory-limit", "lots"),
+    ];
+    for &(command, flag, value) in cases {
+        let case = format!("{command} {flag} {value}");
+        // `--flag=value`, so that negative values reach the flag's own check.
+        let flag_value = format!("{flag}={value}");
+        let args = [
+            command,
+            "--scene",
+            "synthetic",
+            "--out",
+            path_str(&out),
+            &flag_value,
+        ];
+        let result = orbit_nerf(&args).output().unwrap();
+        assert_clear_error(&case, &result, &[flag]);
+        assert_eq!(result.status.code(), Some(2), "{case}: a usage error");
+        assert!(!out.exists(), "{case}: created its output");
+    }
+}
+
+/// `--idle-timeout inf` waits for ever instead of panicking: the folder's END marker ends
+/// the stream. With no frame at all, the stream ends non-zero saying so and saves nothing.
+#[test]
+fn stream_idle_timeout_inf_waits_until_end_and_an_empty_stream_fails() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("idle-inf");
+    let watched = scratch.path("watched");
+    std::fs::create_dir_all(&watched).unwrap();
+    std::fs::copy(
+        root().join("../shared/data/speedplus/camera.json"),
+        watched.join("camera.json"),
+    )
+    .unwrap();
+    std::fs::write(watched.join("END"), b"").unwrap();
+    let out = scratch.path("out");
+    let result = orbit_nerf(&[
+        "stream",
+        "--watch",
+        path_str(&watched),
+        "--idle-timeout",
+        "inf",
+        "--out",
+        path_str(&out),
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error("idle-timeout inf", &result, &["no usable frame"]);
+    assert!(!out.join("checkpoint.onrf").exists(), "saved a checkpoint");
+}
+
+/// A stream whose every frame is unusable (all black) ends non-zero, reports each frame and
+/// never prints a score or saves the untrained model.
+#[test]
+fn stream_with_only_black_frames_fails_without_a_score() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("black");
+    let (watched, labels) = watched_folder(&scratch, 2);
+    for label in &labels {
+        let stem = label.filename.trim_end_matches(".png");
+        image::GrayImage::new(32, 32)
+            .save(watched.join(format!("{stem}.png")))
+            .unwrap();
+        std::fs::write(
+            watched.join(format!("{stem}.json")),
+            serde_json::to_vec(label).unwrap(),
+        )
+        .unwrap();
+    }
+    std::fs::write(watched.join("END"), b"").unwrap();
+    let out = scratch.path("out");
+    let result = orbit_nerf(&["stream", "--watch", path_str(&watched), "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_clear_error("all black", &result, &["all black", "no usable frame"]);
+    assert!(!out.join("checkpoint.onrf").exists(), "saved a checkpoint");
+}
+
+/// A simulated dataset of `frames` frames at 32 px in `scratch/data`, and a watched folder
+/// `scratch/watched` holding only its camera file; returns the folder and the labels.
+fn watched_folder(scratch: &Scratch, frames: u32) -> (PathBuf, Vec<Label>) {
+    let data = scratch.path("data");
+    let mut scene = Scene::load("lightbox").unwrap();
+    scene.spec.frames = frames;
+    scene.spec.size = 32;
+    sim::simulate(&scene, &data, &|| {}).unwrap();
+    let watched = scratch.path("watched");
+    std::fs::create_dir_all(&watched).unwrap();
+    std::fs::copy(data.join("camera.json"), watched.join("camera.json")).unwrap();
+    let labels = speedplus::read_labels(&data.join("labels.json")).unwrap();
+    (watched, labels)
+}
+
+/// Put frame `label` of `scratch/data` into the watched folder under the name `stem`.
+fn publish_frame(scratch: &Scratch, watched: &Path, label: &Label, stem: &str) {
+    let image = scratch.path("data/images").join(&label.filename);
+    std::fs::copy(image, watched.join(format!("{stem}.png"))).unwrap();
+    let mut label = label.clone();
+    label.filename = format!("{stem}.png");
+    std::fs::write(
+        watched.join(format!("{stem}.json")),
+        serde_json::to_vec(&label).unwrap(),
+    )
+    .unwrap();
+}
+
+/// Frames lost without a word: a frame whose name sorts before one already taken (an
+/// unpadded counter, a late arrival) is still ingested, and `img2` comes before `img10`.
+#[test]
+fn watched_folder_takes_late_frames_whose_names_sort_earlier() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("late");
+    let (watched, labels) = watched_folder(&scratch, 3);
+    let options = WatchOptions {
+        poll: Duration::from_millis(10),
+        grace: Duration::from_millis(100),
+        idle_timeout: Some(Duration::from_millis(300)),
+    };
+    let mut source = WatchedFolder::open(&watched, None, options).unwrap();
+    let stop = AtomicBool::new(false);
+    let next_name = |source: &mut WatchedFolder| match source.next(&stop) {
+        Some(Arrival::Frame(frame)) => frame.name,
+        Some(Arrival::Bad(e)) => panic!("bad frame: {e}"),
+        None => String::from("(end)"),
+    };
+    publish_frame(&scratch, &watched, &labels[0], "img10");
+    publish_frame(&scratch, &watched, &labels[1], "img2");
+    assert!(next_name(&mut source).ends_with("img2.png"));
+    assert!(next_name(&mut source).ends_with("img10.png"));
+    // Arrives after img10 was taken, and sorts before it (as text and as a number).
+    publish_frame(&scratch, &watched, &labels[2], "img1");
+    assert!(next_name(&mut source).ends_with("img1.png"));
+    assert_eq!(next_name(&mut source), "(end)");
+    assert_eq!(source.arrived(), ["img2", "img10", "img1"]);
+}
+
+/// `simulate --out` over a dataset folder that also holds the user's own files refuses and
+/// deletes nothing; over a plain simulated dataset it replaces it.
+#[test]
+fn simulate_over_a_dataset_with_other_folders_deletes_nothing() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("sim-out");
+    let out = scratch.path("set");
+    let simulate = |out: &Path| {
+        orbit_nerf(&[
+            "simulate", "--scene", "lightbox", "--frames", "2", "--size", "16",
+        ])
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+    };
+    let first = simulate(&out);
+    assert!(first.status.success(), "{}", text(&first));
+    // A rerun over the simulator's own output replaces it.
+    let again = simulate(&out);
+    assert!(again.status.success(), "{}", text(&again));
+
+    std::fs::create_dir_all(out.join("runs")).unwrap();
+    std::fs::write(out.join("runs/model.onrf"), b"precious").unwrap();
+    let refused = simulate(&out);
+    assert_clear_error("foreign folder", &refused, &["runs", "refusing"]);
+    assert_eq!(
+        std::fs::read(out.join("runs/model.onrf")).unwrap(),
+        b"precious"
+    );
+    assert!(out.join("labels.json").is_file(), "the dataset was touched");
+
+    // A file where the folder should be is not replaced either.
+    let file = scratch.path("file");
+    std::fs::write(&file, b"mine").unwrap();
+    assert_clear_error("out is a file", &simulate(&file), &["not a folder"]);
+    assert_eq!(std::fs::read(&file).unwrap(), b"mine");
+}
+
+/// A killed `simulate` leaves no dataset at `--out` (it stages in a sibling folder), and the
+/// next run removes what the dead run left; a sibling with the user's files stays.
+#[test]
+fn a_killed_simulate_leaves_no_partial_dataset_behind() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("sim-kill");
+    let out = scratch.path("set");
+    let staging_of = |pid: u32| scratch.path(&format!("set.partial-{pid}"));
+    let mut child = orbit_nerf(&["simulate", "--scene", "lightbox", "--frames", "5000"])
+        .args(["--size", "64", "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let staging = staging_of(child.id());
+    while !staging.exists() {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!out.exists(), "a partial dataset was left at --out");
+    assert!(staging.exists());
+
+    // Not ours: a sibling with the same pattern holding something else.
+    let foreign = staging_of(999_999_999);
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("notes.txt"), b"mine").unwrap();
+
+    let rerun = orbit_nerf(&["simulate", "--scene", "lightbox", "--frames", "2"])
+        .args(["--size", "16", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(rerun.status.success(), "{}", text(&rerun));
+    assert!(
+        !staging.exists(),
+        "the dead run's staging folder is still there"
+    );
+    assert!(
+        foreign.join("notes.txt").is_file(),
+        "removed a folder it did not write"
+    );
+    assert!(out.join("labels.json").is_file());
+}
+
+/// A scene whose camera stands 1e20 m away is refused naming the field (it used to hang in a
+/// rejection loop that could never accept a sun direction).
+#[test]
+fn simulate_with_a_camera_1e20_m_away_is_refused() {
+    let scratch = Scratch::new("far");
+    let base = include_str!("../scenes/synthetic.toml");
+    let far = base.replace("distance_m = [5.0, 2.8]", "distance_m = [1e20, 2.8]");
+    assert_ne!(far, base);
+    let scene = scratch.path("far.toml");
+    std::fs::write(&scene, far).unwrap();
+    let result = orbit_nerf(&["simulate", "--scene", path_str(&scene), "--out"])
+        .arg(scratch.path("out"))
+        .output()
+        .unwrap();
+    assert_clear_error("distance 1e20", &result, &["poses.distance_m", "100 km"]);
+}
+
+/// A rerun of `stream` without `--resume` does not replace the previous stream's checkpoint
+/// (unless `--force`), `--resume` from another source is refused, and an `--out` that is a
+/// file fails before any work.
+#[test]
+fn stream_outputs_are_never_replaced_silently() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("stream-out");
+    let out = scratch.path("run");
+    let stream = |scene: &str, out: &Path, extra: &[&str]| {
+        orbit_nerf(&["stream", "--scene", scene, "--frames", "4", "--size", "24"])
+            .args(["--store", "2", "--steps-per-frame", "1", "--holdout", "3"])
+            .args(["--eval-every", "100", "--fit-steps", "1", "--out"])
+            .arg(out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let stopped = stream("lightbox", &out, &["--stop-after", "2"]);
+    assert!(stopped.status.success(), "{}", text(&stopped));
+    let checkpoint = out.join("checkpoint.onrf");
+    let saved = std::fs::read(&checkpoint).unwrap();
+
+    let rerun = stream("lightbox", &out, &[]);
+    assert_clear_error("rerun", &rerun, &["checkpoint.onrf", "--resume", "--force"]);
+    assert_eq!(std::fs::read(&checkpoint).unwrap(), saved);
+
+    let other = stream("sunlamp", &out, &["--resume"]);
+    assert_clear_error(
+        "resume another source",
+        &other,
+        &["resume with the same source"],
+    );
+    assert_eq!(std::fs::read(&checkpoint).unwrap(), saved);
+
+    let resumed = stream("lightbox", &out, &["--resume"]);
+    assert!(resumed.status.success(), "{}", text(&resumed));
+
+    let forced = stream("lightbox", &out, &["--force"]);
+    assert!(forced.status.success(), "{}", text(&forced));
+
+    let file = scratch.path("file");
+    std::fs::write(&file, b"mine").unwrap();
+    let into_file = stream("lightbox", &file, &[]);
+    assert_clear_error("out is a file", &into_file, &["is a file"]);
+    assert_eq!(std::fs::read(&file).unwrap(), b"mine");
+}
+
+/// `train --out` naming a file (or a folder below a file) fails before the dataset is read
+/// or a step is trained, and leaves the file alone.
+#[test]
+fn train_out_naming_a_file_fails_before_training() {
+    let scratch = Scratch::new("train-out");
+    let file = scratch.path("file");
+    std::fs::write(&file, b"mine").unwrap();
+    for out in [file.clone(), file.join("run")] {
+        let result = orbit_nerf(&["train", "--data", "no/such/dataset", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert_clear_error("train --out file", &result, &["is a file, not a folder"]);
+        assert!(
+            !text(&result).contains("no/such/dataset"),
+            "read the data first"
+        );
+    }
+    assert_eq!(std::fs::read(&file).unwrap(), b"mine");
+}
+
+/// Sizes that need tens of GB fail before anything is allocated, with the plan's numbers,
+/// instead of aborting with `memory allocation failed`.
+#[test]
+fn sizes_that_cannot_fit_fail_with_the_memory_plan() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("memory");
+    let out = scratch.path("out");
+    let cases: [(&str, Vec<&str>, &[&str]); 3] = [
+        (
+            "simulate --size 65535",
+            vec!["simulate", "--scene", "lightbox", "--size", "65535"],
+            &["frames being rendered", "dataset read back"],
+        ),
+        (
+            "stream of 1000 frames at 4096 px",
+            vec![
+                "stream", "--scene", "lightbox", "--size", "4096", "--store", "1000",
+            ],
+            &["frame store"],
+        ),
+        (
+            "stream --size 65535",
+            vec!["stream", "--scene", "lightbox", "--size", "65535"],
+            &["frame store"],
+        ),
+    ];
+    for (case, args, needles) in cases {
+        let result = orbit_nerf(&args)
+            .args(["--memory-limit", "8G", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        let mut expected = vec!["needs", "memory limit of 8.0 GiB", "--memory-limit"];
+        expected.extend_from_slice(needles);
+        assert_clear_error(case, &result, &expected);
+        assert!(!out.exists(), "{case}: wrote output");
+    }
+}
+
+/// A checkpoint whose parameters hold a NaN (saved with a valid CRC, as a diverged run would
+/// write it) is refused on restore, naming the file and the section, instead of stalling every
+/// later step of the resumed run.
+#[test]
+fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    use orbit_nerf_host::{checkpoint, train};
+    let scratch = Scratch::new("nan-checkpoint");
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.max_frames = 1;
+    config.max_pixels_per_frame = 64;
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let path = scratch.path("run.onrf");
+    train::save_checkpoint(&path, &Trainer::new(config, &mut arena).unwrap()).unwrap();
+    let mut saved = checkpoint::load(&path).unwrap();
+    let mlp = saved.sections.iter_mut().find(|s| s.name == "mlp").unwrap();
+    mlp.bytes[8..12].copy_from_slice(&f32::NAN.to_ne_bytes());
+    checkpoint::save(&path, &saved).unwrap();
+
+    let saved = checkpoint::load(&path).unwrap();
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let error = train::restore_checkpoint(&path, &saved, &mut trainer)
+        .unwrap_err()
+        .to_string();
+    for needle in ["run.onrf", "`mlp`", "non-finite value (element 2)"] {
+        assert!(error.contains(needle), "`{needle}` not in: {error}");
+    }
+}
