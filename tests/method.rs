@@ -274,10 +274,10 @@ fn a_checkpoint_gone_to_nan_is_an_error_naming_the_views_and_never_a_score() {
             out.to_str().unwrap(),
         ]);
         assert!(!ok, "{command} scored a NaN model:\n{text}");
-        assert!(
-            text.contains("non-finite") && text.contains("view 0 (") && text.contains("view 8 ("),
-            "{command}: {text}"
-        );
+        // Since issue 13 the checkpoint's NaN is refused when it is restored (naming the
+        // section); the render scoring refuses non-finite renders as well (naming the views,
+        // `report::views` tests), so either way no score is printed.
+        assert!(text.contains("non-finite"), "{command}: {text}");
         assert!(!text.contains("dB"), "{command} printed a score:\n{text}");
     }
     let _ = std::fs::remove_dir_all(&dir);
