@@ -586,11 +586,11 @@ fn training_reduces_the_loss_and_renders_the_held_out_views() {
     assert!(last < first * 0.2, "loss {first} -> {last}");
     for (b, a) in before.iter().zip(&after) {
         assert!(
-            a.psnr > b.psnr + 5.0 && a.psnr > 20.0,
+            a.metrics.psnr_full > b.metrics.psnr_full + 5.0 && a.metrics.psnr_full > 20.0,
             "view {}: {:.2} -> {:.2} dB",
             a.index,
-            b.psnr,
-            a.psnr
+            b.metrics.psnr_full,
+            a.metrics.psnr_full
         );
     }
     assert!(

@@ -61,6 +61,14 @@ fn write_speedplus_folder(root: &Path) {
     .unwrap();
 }
 
+/// `orbit-nerf train` on `data` at 64 px into `run`, with `options`.
+fn train_at_64_px(data: &str, run: &Path, options: &[&str]) -> (bool, String) {
+    let mut args = vec!["train", "--data", data, "--size", "64"];
+    args.extend_from_slice(options);
+    args.extend(["--out", run.to_str().unwrap()]);
+    orbit_nerf(&args)
+}
+
 #[test]
 fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     let dir = temp_dir("speedplus");
@@ -69,23 +77,20 @@ fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     let data_dir = dir.join("synthetic");
     let data = data_dir.to_str().unwrap();
     let run = dir.join("run");
-    let (ok, text) = orbit_nerf(&[
-        "train",
-        "--data",
+    let (ok, text) = train_at_64_px(
         data,
-        "--size",
-        "64",
-        "--steps",
-        "60",
-        "--embedding-dim",
-        "8",
-        "--pose-correction",
-        "true",
-        "--fit-steps",
-        "5",
-        "--out",
-        run.to_str().unwrap(),
-    ]);
+        &run,
+        &[
+            "--steps",
+            "60",
+            "--embedding-dim",
+            "8",
+            "--pose-correction",
+            "true",
+            "--fit-steps",
+            "5",
+        ],
+    );
     assert!(ok, "{text}");
     assert!(text.contains("training on 14 views (2 held out)"), "{text}");
     assert!(run.join("checkpoint.onrf").is_file() && run.join("renders/view_008.png").is_file());
@@ -143,6 +148,22 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
         assert!(report.contains(model), "{model} missing from:\n{report}");
     }
     assert!(report.contains("Pose error"), "{report}");
+    // The simulator writes masks: they are applied, and every model has a foreground PSNR.
+    let header: Vec<&str> = report
+        .lines()
+        .next()
+        .unwrap()
+        .split('|')
+        .map(str::trim)
+        .collect();
+    let fg = header
+        .iter()
+        .position(|h| *h == "fg PSNR")
+        .expect("fg PSNR column");
+    for line in report.lines().filter(|l| l.starts_with("| ours")) {
+        let cell = line.split('|').map(str::trim).nth(fg).unwrap();
+        assert!(cell.parse::<f64>().is_ok_and(f64::is_finite), "{line}");
+    }
     assert!(out.join("compare_view_000.png").is_file());
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -212,4 +233,52 @@ fn pose_noise_sweeps_vary_one_kind_of_noise_each_and_share_the_noise_free_level(
         assert!(out.join(format!("{plot}.png")).is_file(), "{plot}");
     }
     let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn a_checkpoint_gone_to_nan_is_an_error_naming_the_views_and_never_a_score() {
+    let dir = temp_dir("nan");
+    write_speedplus_folder(&dir);
+    let data = dir.join("synthetic");
+    let data = data.to_str().unwrap();
+    let run = dir.join("run");
+    let (ok, text) = train_at_64_px(data, &run, &["--steps", "2", "--fit-steps", "0"]);
+    assert!(ok, "{text}");
+    // Every MLP weight NaN, as a diverged run would leave them.
+    let path = run.join("checkpoint.onrf");
+    let mut checkpoint = orbit_nerf_host::checkpoint::load(&path).unwrap();
+    let mlp = checkpoint
+        .sections
+        .iter_mut()
+        .find(|s| s.name == "mlp")
+        .unwrap();
+    for weight in mlp.bytes.chunks_exact_mut(4) {
+        weight.copy_from_slice(&f32::NAN.to_le_bytes());
+    }
+    let broken = dir.join("nan.onrf");
+    orbit_nerf_host::checkpoint::save(&broken, &checkpoint).unwrap();
+    // `eval` names its render folder `--renders`, `render` names it `--out`.
+    for (command, out_flag) in [("eval", "--renders"), ("render", "--out")] {
+        let out = dir.join(command);
+        let (ok, text) = orbit_nerf(&[
+            command,
+            "--data",
+            data,
+            "--size",
+            "64",
+            "--fit-steps",
+            "0",
+            "--checkpoint",
+            broken.to_str().unwrap(),
+            out_flag,
+            out.to_str().unwrap(),
+        ]);
+        assert!(!ok, "{command} scored a NaN model:\n{text}");
+        // Since issue 13 the checkpoint's NaN is refused when it is restored (naming the
+        // section); the render scoring refuses non-finite renders as well (naming the views,
+        // `report::views` tests), so either way no score is printed.
+        assert!(text.contains("non-finite"), "{command}: {text}");
+        assert!(!text.contains("dB"), "{command} printed a score:\n{text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

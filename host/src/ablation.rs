@@ -100,7 +100,7 @@ pub fn run_variant(
     }
     let train_seconds = start.elapsed().as_secs_f64();
     let scores = train::evaluate(&mut trainer, &executor, dataset, test_idx, fit_steps, None)?;
-    let per_view = train::view_metrics(dataset, &scores)?;
+    let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
     let (pose_before, pose_after) = match truth {
         Some(truth) => {
             let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();

@@ -48,8 +48,86 @@ pub enum SceneBoxOrigin {
     Unknown,
 }
 
+impl Frame {
+    /// Remove the background as the paper does: every pixel whose mask is 0 gets the
+    /// background colour (in [0, 1], rounded to 8 bits), so training targets and evaluation
+    /// references hold no sky noise. Without a mask nothing changes; returns whether the frame
+    /// had one.
+    pub fn apply_mask(&mut self, background: [f32; 3]) -> bool {
+        let Some(mask) = &self.mask else {
+            return false;
+        };
+        let sky = background.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
+        for (pixel, _) in self
+            .pixels
+            .chunks_exact_mut(3)
+            .zip(mask)
+            .filter(|(_, m)| **m == 0)
+        {
+            pixel.copy_from_slice(&sky);
+        }
+        true
+    }
+}
+
+impl Dataset {
+    /// [`Frame::apply_mask`] on every frame with the dataset's background; returns how many
+    /// frames had a mask.
+    pub fn apply_masks(&mut self) -> usize {
+        let background = self.background;
+        self.frames
+            .iter_mut()
+            .filter_map(|f| f.apply_mask(background).then_some(()))
+            .count()
+    }
+}
+
 /// Deterministic held-out split: every `every`-th frame (0, every, 2*every, ...) is a test view.
 pub fn split_every(frame_count: usize, every: usize) -> (Vec<usize>, Vec<usize>) {
     let every = every.max(1);
     (0..frame_count).partition(|i| i % every != 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use orbit_nerf_core::glam::{Mat3, Vec3};
+
+    #[test]
+    fn masks_paint_the_background_only_where_the_mask_is_zero() {
+        let frame = |mask: Option<Vec<u8>>| Frame {
+            name: "f".into(),
+            camera: Camera {
+                width: 3,
+                height: 1,
+                fx: 2.0,
+                fy: 2.0,
+                cx: 1.5,
+                cy: 0.5,
+            },
+            pose: Pose {
+                rotation: Mat3::IDENTITY,
+                center: Vec3::ZERO,
+            },
+            pixels: vec![10, 20, 30, 40, 50, 60, 70, 80, 90],
+            mask,
+        };
+        let mut dataset = Dataset {
+            source: "d".into(),
+            frames: vec![frame(Some(vec![0, 255, 0])), frame(None)],
+            scene_min: [-1.0; 3],
+            scene_max: [1.0; 3],
+            scene_box: SceneBoxOrigin::Stated("the test".into()),
+            background: [1.0, 0.0, 0.5],
+        };
+        assert_eq!(dataset.apply_masks(), 1);
+        assert_eq!(
+            dataset.frames[0].pixels,
+            vec![255, 0, 128, 40, 50, 60, 255, 0, 128]
+        );
+        assert_eq!(
+            dataset.frames[1].pixels,
+            vec![10, 20, 30, 40, 50, 60, 70, 80, 90]
+        );
+    }
 }

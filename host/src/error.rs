@@ -18,6 +18,17 @@ pub enum HostError {
     },
     #[error("{}: {reason}", file.display())]
     Invalid { file: PathBuf, reason: String },
+    /// Renders that hold NaN or infinite pixels: the model (its parameters, or a config that
+    /// overflows) produced garbage, and garbage is never scored.
+    #[error(
+        "{}: the renders of {} held non-finite pixels (NaN or infinite): the model is broken, no score is reported",
+        dataset.display(),
+        views.join(", ")
+    )]
+    NonFiniteRender {
+        dataset: PathBuf,
+        views: Vec<String>,
+    },
     #[error("core: {0}")]
     Core(String),
 }

@@ -4,10 +4,12 @@
 use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
-use crate::report::ViewMetrics;
+use crate::metrics::MetricError;
+use crate::report::{ViewMetrics, score_view};
 use orbit_nerf_core::{Config, Executor, Trainer};
 use rayon::prelude::*;
 use std::path::Path;
+use std::time::Instant;
 
 /// Read a full config from a TOML file: every field named, either at the top level or in a
 /// `[config]` table (as in the budget files, `budgets/*.toml`).
@@ -164,20 +166,6 @@ pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
         .collect()
 }
 
-/// PSNR (dB) of a rendering against 8-bit ground truth.
-pub fn psnr_against(render: &[f32], truth: &[u8]) -> f64 {
-    let mse: f64 = render
-        .iter()
-        .zip(truth)
-        .map(|(r, t)| {
-            let e = r.clamp(0.0, 1.0) as f64 - *t as f64 / 255.0;
-            e * e
-        })
-        .sum::<f64>()
-        / render.len().max(1) as f64;
-    -10.0 * mse.max(1e-12).log10()
-}
-
 /// Kind tag of training checkpoints.
 pub const CHECKPOINT_KIND: &str = "orbit-nerf trainer";
 
@@ -244,12 +232,13 @@ pub fn restore_checkpoint(
 pub struct ViewScore {
     pub index: usize,
     pub name: String,
-    /// PSNR over the whole image and over its right half (the half not used to fit the
-    /// appearance embedding).
-    pub psnr: f64,
-    pub psnr_right: f64,
+    /// The image metrics of the render against the view's reference (`report::score_view`,
+    /// the one definition every command reports).
+    pub metrics: ViewMetrics,
     /// Mean samples per ray of the rendering.
     pub samples_per_ray: f32,
+    /// Wall time of fitting the view's embedding and rendering it.
+    pub seconds: f64,
     /// The rendering, RGB f32 in [0, 1].
     pub render: Vec<f32>,
 }
@@ -259,6 +248,9 @@ pub struct ViewScore {
 /// `fit_steps` steps on the left half of the view's pixels (skipped without embeddings),
 /// render the whole view and score it. With `render_dir`, writes `view_NNN.png` renders
 /// beside `truth_NNN.png`.
+///
+/// A render holding NaN or infinite pixels is not scored: after every view is rendered, the
+/// error [`HostError::NonFiniteRender`] names each such view.
 pub fn evaluate<E: Executor>(
     trainer: &mut Trainer<'_>,
     executor: &E,
@@ -270,11 +262,13 @@ pub fn evaluate<E: Executor>(
     let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
     trainer.mean_embedding(&mut mean);
     let mut scores = Vec::with_capacity(indices.len());
+    let mut non_finite = Vec::new();
     for &index in indices {
         let frame = dataset
             .frames
             .get(index)
             .ok_or_else(|| HostError::invalid(&dataset.source, format!("no view {index}")))?;
+        let start = Instant::now();
         let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
         let mut embedding = mean.clone();
         if !embedding.is_empty() && fit_steps > 0 {
@@ -294,6 +288,21 @@ pub fn evaluate<E: Executor>(
         let samples_per_ray = trainer
             .render(executor, &frame.camera, &frame.pose, &embedding, &mut out)
             .map_err(|e| core_error(Path::new(&frame.name), e))?;
+        let seconds = start.elapsed().as_secs_f64();
+        let metrics = match score_view(
+            &out,
+            &frame.pixels,
+            frame.mask.as_deref(),
+            w as usize,
+            h as usize,
+        ) {
+            Ok(metrics) => metrics,
+            Err(MetricError::NonFinite { .. }) => {
+                non_finite.push(format!("view {index} ({})", frame.name));
+                continue;
+            }
+            Err(e) => return Err(HostError::invalid(&frame.name, e.to_string())),
+        };
         if let Some(dir) = render_dir {
             crate::io::write_png(
                 &dir.join(format!("view_{index:03}.png")),
@@ -310,47 +319,23 @@ pub fn evaluate<E: Executor>(
                 &frame.pixels,
             )?;
         }
-        let right = |img: &[f32]| -> Vec<f32> {
-            img.chunks_exact(w as usize * 3)
-                .flat_map(|row| row[(w / 2) as usize * 3..].to_vec())
-                .collect()
-        };
-        let truth_right: Vec<u8> = frame
-            .pixels
-            .chunks_exact(w as usize * 3)
-            .flat_map(|row| row[(w / 2) as usize * 3..].to_vec())
-            .collect();
         scores.push(ViewScore {
             index,
             name: frame.name.clone(),
-            psnr: psnr_against(&out, &frame.pixels),
-            psnr_right: psnr_against(&right(&out), &truth_right),
+            metrics,
             samples_per_ray,
+            seconds,
             render: out,
+        });
+    }
+    if !non_finite.is_empty() {
+        return Err(HostError::NonFiniteRender {
+            dataset: dataset.source.clone(),
+            views: non_finite,
         });
     }
     Ok(scores)
 }
-
-/// PSNR, SSIM and JNB of evaluated views (`report::score_view`) against their dataset frames.
-pub fn view_metrics(dataset: &Dataset, scores: &[ViewScore]) -> Result<Vec<ViewMetrics>> {
-    scores
-        .iter()
-        .map(|score| {
-            let frame = dataset.frames.get(score.index).ok_or_else(|| {
-                HostError::invalid(&dataset.source, format!("no view {}", score.index))
-            })?;
-            crate::report::score_view(
-                &score.render,
-                &frame.pixels,
-                frame.camera.width as usize,
-                frame.camera.height as usize,
-            )
-            .map_err(|e| HostError::invalid(&frame.name, e.to_string()))
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -61,6 +61,10 @@ pub struct AblateArgs {
     /// truth.json's and the box found from the data).
     #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
     pub scene_box: Option<SceneBox>,
+    /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
+    /// get the background colour for training and scoring (as the paper removes it).
+    #[arg(long)]
+    pub no_masks: bool,
 }
 
 /// The paper's rotation sweep: rotation noise on the labels, in degrees (exact positions).
@@ -84,6 +88,7 @@ pub fn simulated(
     size: u16,
     noise: Option<LabelNoise>,
     out: &Path,
+    masks: bool,
 ) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let mut scene = Scene::load(scene)?;
     scene.spec.frames = frames;
@@ -93,10 +98,12 @@ pub fn simulated(
             (noise.rotation_deg > 0.0 || noise.translation_m > 0.0).then_some(noise);
     }
     sim::simulate(&scene, out, &|| {})?;
-    load(out, size)
+    load(out, size, masks)
 }
 
-fn load(path: &Path, size: u16) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
+/// Load a SPEED+ folder with its exact poses (when it has `truth.json`), its masks applied
+/// when `masks`.
+fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let set = speedplus::load(
         path,
         &LoadOptions {
@@ -105,7 +112,11 @@ fn load(path: &Path, size: u16) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
         },
     )?;
     let truth = set.true_poses()?;
-    Ok((set.dataset, truth))
+    let mut dataset = set.dataset;
+    if masks {
+        dataset.apply_masks();
+    }
+    Ok((dataset, truth))
 }
 
 pub fn run(args: &AblateArgs) -> Fallible<()> {
@@ -128,13 +139,14 @@ fn base_config(args: &AblateArgs) -> Fallible<Config> {
 
 fn ablate(args: &AblateArgs) -> Fallible<()> {
     let (mut dataset, truth) = match &args.data {
-        Some(path) => load(path, args.size)?,
+        Some(path) => load(path, args.size, !args.no_masks)?,
         None => simulated(
             &args.scene,
             args.frames,
             args.size,
             None,
             &args.out.join("data"),
+            !args.no_masks,
         )?,
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
@@ -237,7 +249,14 @@ struct Level {
 }
 
 fn run_level(args: &AblateArgs, base: &Config, noise: LabelNoise, dir: &Path) -> Fallible<Level> {
-    let (dataset, truth) = simulated("synthetic", args.frames, args.size, Some(noise), dir)?;
+    let (dataset, truth) = simulated(
+        "synthetic",
+        args.frames,
+        args.size,
+        Some(noise),
+        dir,
+        !args.no_masks,
+    )?;
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
     println!(
         "noise {} deg / {} mm",

@@ -32,6 +32,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
         data: args.data.clone(),
         size: args.size,
         holdout: 8,
+        no_masks: false,
     };
     let (mut dataset, train_idx, _) = open_dataset(&data)?;
     let mut base = match &args.config {

@@ -24,6 +24,10 @@ pub struct DemoArgs {
     /// Training steps (default: the demo's budget).
     #[arg(long)]
     steps: Option<u32>,
+    /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
+    /// get the background colour for training and scoring (as the paper removes it).
+    #[arg(long)]
+    no_masks: bool,
 }
 
 /// The demo's budget: the lightbox preset at 128 px, trained with appearance embeddings and
@@ -42,6 +46,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
         DEMO_SIZE,
         None,
         &args.out.join("data"),
+        !args.no_masks,
     )?;
     let (train_idx, test_idx) = dataset::split_every(dataset.frames.len(), 8);
     let mut config = Config::SPACECRAFT;
@@ -63,7 +68,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
                 running.add(step.mse);
             }
             let psnr = running.db();
-            bar.set_message(format!("loss {:.5} psnr {psnr:.2} dB", step.mse));
+            bar.set_message(format!("loss {:.5} train-loss PSNR {psnr:.2} dB", step.mse));
             bar.inc(1);
         },
     )?;

@@ -16,6 +16,7 @@ use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset, Frame};
 use orbit_nerf_host::formats;
+use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box::{self, StatedBox};
 use orbit_nerf_host::train::{
     RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
@@ -39,6 +40,10 @@ struct DataArgs {
     /// Every N-th view (0, N, 2N, ...) is held out for evaluation.
     #[arg(long, default_value_t = 8)]
     holdout: usize,
+    /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
+    /// get the background colour for training and scoring (as the paper removes it).
+    #[arg(long)]
+    no_masks: bool,
 }
 
 #[derive(Args, Clone)]
@@ -113,9 +118,17 @@ const FIT_STEPS: u32 = 50;
 const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
 
 fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
-    let dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
+    let mut dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
     if dataset.frames.is_empty() {
         return Err(format!("{}: no frames", data.data.display()).into());
+    }
+    if !data.no_masks {
+        let masked = dataset.apply_masks();
+        if masked > 0 {
+            println!(
+                "masks applied: background colour where the mask is 0 on {masked} views (--no-masks keeps the sky)"
+            );
+        }
     }
     let (train, test) = dataset::split_every(dataset.frames.len(), data.holdout);
     Ok((dataset, train, test))
@@ -155,21 +168,41 @@ fn with_trainer<R>(
     f(&mut trainer)
 }
 
-fn print_scores(scores: &[ViewScore]) -> f64 {
+/// The held-out scores, one line per view and the mean (metrics as `report::score_view`
+/// defines them), and the mean's metrics.
+fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
     println!(
-        "{:>6}  {:>8}  {:>11}  view",
-        "index", "PSNR dB", "samples/ray"
+        "{:>6}  {:>8}  {:>8}  {:>8}  {:>6}  {:>6}  {:>11}  view",
+        "index", "PSNR dB", "right dB", "fg dB", "SSIM", "JNB", "samples/ray"
     );
     for s in scores {
+        let m = &s.metrics;
         println!(
-            "{:>6}  {:>8.2}  {:>11.1}  {}",
-            s.index, s.psnr, s.samples_per_ray, s.name
+            "{:>6}  {:>8.2}  {:>8.2}  {:>8.2}  {:>6.4}  {:>6.3}  {:>11.1}  {}",
+            s.index,
+            m.psnr_full,
+            m.psnr_right,
+            m.psnr_foreground,
+            m.ssim_full,
+            m.jnb_full,
+            s.samples_per_ray,
+            s.name
         );
     }
-    let mean = scores.iter().map(|s| s.psnr).sum::<f64>() / scores.len().max(1) as f64;
+    let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+    let mean = mean_metrics(&per_view);
     println!(
-        "mean PSNR over {} held-out views: {mean:.2} dB",
-        scores.len()
+        "mean PSNR over {} held-out views: {:.2} dB",
+        scores.len(),
+        mean.psnr_full
+    );
+    println!(
+        "mean right-half PSNR {:.2} dB, foreground PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, JNB {:.3}",
+        mean.psnr_right,
+        mean.psnr_foreground,
+        mean.psnr_foreground_right,
+        mean.ssim_full,
+        mean.jnb_full
     );
     mean
 }
@@ -200,8 +233,9 @@ fn bar_style(template: &str) -> Fallible<ProgressStyle> {
     Ok(ProgressStyle::with_template(template)?.progress_chars("=> "))
 }
 
-/// The running PSNR shown while training: an exponential average of the steps' MSE (skipped
-/// steps left out), in dB.
+/// The figure shown while training: the PSNR of an exponential average of the training
+/// batches' loss (skipped steps left out), in dB. It is labelled "train-loss PSNR": it is not
+/// the held-out PSNR, which only `report::score_view` defines.
 #[derive(Default)]
 struct RunningPsnr(Option<f64>);
 

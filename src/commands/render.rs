@@ -41,7 +41,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
         println!(
             "view {:>3}: {:.2} dB -> {}",
             s.index,
-            s.psnr,
+            s.metrics.psnr_full,
             args.out.join(format!("view_{:03}.png", s.index)).display()
         );
     }

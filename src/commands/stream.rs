@@ -10,7 +10,7 @@ use orbit_nerf_host::report::ViewMetrics;
 use orbit_nerf_host::scene_box::box_text;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
-    self, Control, DatasetSource, Event, Fate, FrameSource, Outcome, SimulatorSource,
+    self, Control, DatasetSource, Event, Fate, FrameSource, MaskedSource, Outcome, SimulatorSource,
     StreamSettings, StreamState, WatchOptions, WatchedFolder,
 };
 use orbit_nerf_host::train::{self, RayonExecutor};
@@ -98,6 +98,10 @@ pub struct StreamArgs {
     /// number of steps and compare the held-out quality.
     #[arg(long)]
     pub compare_offline: bool,
+    /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
+    /// get the background colour for training and scoring (as the paper removes it).
+    #[arg(long)]
+    pub no_masks: bool,
     /// Model config (TOML, every field); default: the built-in config with the method's
     /// appearance embeddings and pose correction.
     #[arg(long)]
@@ -175,7 +179,16 @@ fn model_config(args: &StreamArgs) -> Fallible<Config> {
     Ok(config)
 }
 
+/// Stream from `source`, with its masks applied unless `--no-masks`.
 fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
+    if args.no_masks {
+        stream_over(args, source)
+    } else {
+        stream_over(args, &mut MaskedSource::new(source))
+    }
+}
+
+fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
     let checkpoint_path = args.out.join("checkpoint.onrf");
     let (config, mut state, restored) = if args.resume {
         let (checkpoint, config, state) = stream::resume(&checkpoint_path, source)?;
@@ -387,15 +400,15 @@ fn summary(
     if let Some(last) = state.curve.last() {
         let _ = writeln!(
             text,
-            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, on {} views",
-            last.psnr, last.psnr_right, last.ssim, last.held_out_views
+            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views",
+            last.psnr, last.psnr_right, last.psnr_foreground, last.ssim, last.held_out_views
         );
     }
     if let Some((metrics, offline_seconds)) = offline {
         let _ = writeln!(
             text,
-            "- offline reference (all training frames at once, same steps, {offline_seconds:.1} s): held-out PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}",
-            metrics.psnr_full, metrics.psnr_right, metrics.ssim_full
+            "- offline reference (all training frames at once, same steps, {offline_seconds:.1} s): held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}",
+            metrics.psnr_full, metrics.psnr_right, metrics.psnr_foreground, metrics.ssim_full
         );
     }
     if let (Some(first), Some(last)) = (

@@ -101,7 +101,7 @@ fn train_loop<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Fallible<
         if i % 10 == 0 || i + 1 == steps {
             let psnr = running.db();
             bar.set_message(format!(
-                "loss {:.5} psnr {psnr:.2} dB {:.1} samples/ray",
+                "loss {:.5} train-loss PSNR {psnr:.2} dB {:.1} samples/ray",
                 report.mse,
                 report.samples as f32 / report.rays.max(1) as f32
             ));

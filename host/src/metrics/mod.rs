@@ -83,6 +83,10 @@ pub enum MetricError {
         width: usize,
         height: usize,
     },
+    #[error(
+        "the render has {count} non-finite samples (NaN or infinite): it is not an image and has no score"
+    )]
+    NonFinite { count: usize },
     #[error("{metric} needs a 1-channel (gray) or 3-channel (RGB) image, got {channels} channels")]
     Channels {
         metric: &'static str,

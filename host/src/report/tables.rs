@@ -48,8 +48,8 @@ pub struct ModelRow {
     pub train_seconds: f64,
 }
 
-/// The paper-style ablation table (PSNR with 2 decimals, SSIM and JNB with 4, training time in
-/// seconds with 1), followed by a note saying which JNB is reported, since JNB variants give
+/// The paper-style ablation table (PSNR with 2 decimals, SSIM and JNB with 4, foreground PSNR
+/// with 2, training time in seconds with 1), followed by a note saying which JNB is reported, since JNB variants give
 /// different numbers on the same image. A NaN JNB shows as `n/a`.
 pub fn ablation_table(rows: &[ModelRow]) -> String {
     let header = [
@@ -60,6 +60,8 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
         "PSNR full",
         "SSIM full",
         "JNB full",
+        "fg PSNR",
+        "fg PSNR right",
         "train s",
     ];
     let body: Vec<Vec<String>> = rows
@@ -74,6 +76,8 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
                 format!("{:.2}", m.psnr_full),
                 format!("{:.4}", m.ssim_full),
                 format_or_na(m.jnb_full, 4),
+                format_or_na(m.psnr_foreground, 2),
+                format_or_na(m.psnr_foreground_right, 2),
                 format!("{:.1}", row.train_seconds),
             ]
         })
@@ -83,7 +87,9 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
         "\nPSNR in dB on 8-bit images (inf: render equals reference). JNB: Ferzli & Karam blur \
          D/L, paper variant (L = edge blocks, W_JNB = 5 for block contrast <= 50), on the \
          render's luma; lower is sharper. \"right\": x >= width/2, the half the appearance \
-         embedding was not fitted on.\n",
+         embedding was not fitted on. \"fg\": over the pixels the mask marks as target (n/a \
+         without masks). With masks applied (the default) the references' sky is the background \
+         colour, so SSIM is on masked images.\n",
     );
     table
 }
@@ -163,6 +169,8 @@ mod tests {
             psnr_full: 31.0,
             ssim_full: 0.96,
             jnb_full: f64::NAN,
+            psnr_foreground: 27.123,
+            psnr_foreground_right: f64::NAN,
         }
     }
 
@@ -180,13 +188,15 @@ mod tests {
             "SSIM right",
             "JNB right",
             "JNB full",
+            "fg PSNR",
+            "fg PSNR right",
             "train s",
         ] {
             assert!(lines[0].contains(column), "{table}");
         }
         let cells: Vec<&str> = lines[2].split('|').map(str::trim).collect();
         assert_eq!(
-            cells[1..9],
+            cells[1..11],
             [
                 "ours + pose",
                 "30.54",
@@ -194,6 +204,8 @@ mod tests {
                 "0.0333",
                 "31.00",
                 "0.9600",
+                "n/a",
+                "27.12",
                 "n/a",
                 "1800.0"
             ]

@@ -11,6 +11,9 @@ use crate::metrics::{self, ImageRef, JnbVariant, MetricError};
 /// - PSNR in dB on 8-bit values; `f64::INFINITY` when the quantised render equals the reference
 ///   (as scikit-image reports it; nothing is capped).
 /// - SSIM as [`metrics::ssim`] (mean over the three channels).
+/// - Foreground PSNR: the same PSNR over the pixels the view's mask marks as target (all three
+///   channels), whole image and right half, since whole-image PSNR of a spacecraft view is mostly
+///   black sky. `f64::NAN` when the view has no mask or the region holds no target pixel.
 /// - JNB is [`metrics::JnbScore::blur`] with [`JnbVariant::Paper`], lower is sharper, measured
 ///   on the render alone (it is a no-reference metric). `f64::NAN` when the region has no edge
 ///   block to measure: a blank render, or a region narrower or shorter than one 64x64 block.
@@ -22,25 +25,34 @@ pub struct ViewMetrics {
     pub psnr_full: f64,
     pub ssim_full: f64,
     pub jnb_full: f64,
+    pub psnr_foreground: f64,
+    pub psnr_foreground_right: f64,
 }
 
 /// Score a render (RGB `f32` in [0, 1], row-major, `width * height * 3` values) against the
-/// reference image (RGB8, same layout).
+/// reference image (RGB8, same layout), with the view's foreground mask (one byte per pixel,
+/// 0 = background) when it has one. The reference is scored as given: with masks applied
+/// (`Dataset::apply_masks`) its sky is the background colour, so SSIM measures the target.
 ///
-/// The render is quantised to 8 bits first (round half up, values outside [0, 1] clamped, NaN
-/// taken as 0): the reference is 8-bit, and NeRF evaluations score renders as saved 8-bit
+/// The render is quantised to 8 bits first (round half up, values outside [0, 1] clamped): the reference is 8-bit, and NeRF evaluations score renders as saved 8-bit
 /// images. JNB reads the Rec.601 luma (`0.299 R + 0.587 G + 0.114 B`) of the quantised render,
 /// itself rounded to 8 bits, as an image library's 8-bit gray conversion gives it to the
 /// reference JNB code.
 ///
-/// Errors when a buffer does not match `width x height x 3`, or when a region is smaller than
-/// SSIM's 11x11 window.
+/// Errors when the render holds a non-finite value (a model gone to NaN is never a score),
+/// when a buffer does not match `width x height x 3`, or when a region is smaller than SSIM's
+/// 11x11 window.
 pub fn score_view(
     render: &[f32],
     truth: &[u8],
+    mask: Option<&[u8]>,
     width: usize,
     height: usize,
 ) -> Result<ViewMetrics, MetricError> {
+    let non_finite = render.iter().filter(|v| !v.is_finite()).count();
+    if non_finite > 0 {
+        return Err(MetricError::NonFinite { count: non_finite });
+    }
     let rendered = quantize(render);
     let rendered_image = ImageRef::new(&rendered, width, height, 3)?;
     let truth_image = ImageRef::new(truth, width, height, 3)?;
@@ -60,12 +72,46 @@ pub fn score_view(
         psnr_full: metrics::psnr(&rendered_image, &truth_image)?,
         ssim_full: metrics::ssim(&rendered_image, &truth_image)?,
         jnb_full: jnb_blur(&luma_image)?,
+        psnr_foreground: foreground_psnr(&rendered, truth, mask, (width, height), 0)?,
+        psnr_foreground_right: foreground_psnr(&rendered, truth, mask, (width, height), left)?,
     })
 }
 
+/// PSNR (8-bit) over the pixels of columns `x >= first_column` whose mask is not 0; NaN
+/// without a mask or without such a pixel, infinite when they all match.
+fn foreground_psnr(
+    rendered: &[u8],
+    truth: &[u8],
+    mask: Option<&[u8]>,
+    (width, height): (usize, usize),
+    first_column: usize,
+) -> Result<f64, MetricError> {
+    let Some(mask) = mask else {
+        return Ok(f64::NAN);
+    };
+    // Checks the mask's size (the images were checked by the caller).
+    ImageRef::new(mask, width, height, 1)?;
+    let (mut squared, mut samples) = (0.0f64, 0usize);
+    for (pixel, &m) in mask.iter().enumerate() {
+        if m == 0 || pixel % width.max(1) < first_column {
+            continue;
+        }
+        for c in 0..3 {
+            let e = rendered[pixel * 3 + c] as f64 - truth[pixel * 3 + c] as f64;
+            squared += e * e;
+        }
+        samples += 3;
+    }
+    if samples == 0 {
+        return Ok(f64::NAN);
+    }
+    let mse = squared / samples as f64;
+    Ok(10.0 * (255.0f64 * 255.0 / mse).log10())
+}
+
 /// Mean over views. PSNR and SSIM are plain means (an infinite PSNR makes the mean infinite,
-/// which is the honest summary of a perfect view). JNB ignores NaN entries (views with no edge
-/// block) and is NaN only when every view is. No views gives NaN everywhere.
+/// which is the honest summary of a perfect view). JNB and foreground PSNR ignore NaN entries
+/// (views with no edge block, no mask or no target pixel) and are NaN only when every view is. No views gives NaN everywhere.
 pub fn mean_metrics(views: &[ViewMetrics]) -> ViewMetrics {
     let field_mean =
         |field: fn(&ViewMetrics) -> f64| mean(&views.iter().map(field).collect::<Vec<f64>>());
@@ -85,6 +131,8 @@ pub fn mean_metrics(views: &[ViewMetrics]) -> ViewMetrics {
         psnr_full: field_mean(|v| v.psnr_full),
         ssim_full: field_mean(|v| v.ssim_full),
         jnb_full: field_mean_ignoring_nan(|v| v.jnb_full),
+        psnr_foreground: field_mean_ignoring_nan(|v| v.psnr_foreground),
+        psnr_foreground_right: field_mean_ignoring_nan(|v| v.psnr_foreground_right),
     }
 }
 
@@ -155,7 +203,7 @@ mod tests {
     fn identical_images_score_perfectly() {
         let (w, h) = (256, 128);
         let truth = scene(w, h);
-        let m = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+        let m = score_view(&to_unit(&truth), &truth, None, w, h).unwrap();
         assert_eq!(m.psnr_right, f64::INFINITY);
         assert_eq!(m.psnr_full, f64::INFINITY);
         assert!((m.ssim_right - 1.0).abs() < 1e-12, "{m:?}");
@@ -206,9 +254,9 @@ mod tests {
             let (bw, bh, blurred) = crate::metrics::tests::read_pgm(&blurred_path);
             assert_eq!((bw, bh), (w, h));
             let truth = gray_to_rgb(&sharp);
-            let sharp_scores = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+            let sharp_scores = score_view(&to_unit(&truth), &truth, None, w, h).unwrap();
             let blurred_scores =
-                score_view(&to_unit(&gray_to_rgb(&blurred)), &truth, w, h).unwrap();
+                score_view(&to_unit(&gray_to_rgb(&blurred)), &truth, None, w, h).unwrap();
             let name = sharp_path.display();
             assert!(blurred_scores.ssim_full < sharp_scores.ssim_full, "{name}");
             assert!(
@@ -244,13 +292,13 @@ mod tests {
                 *v = (*v + 0.03).min(1.0);
             }
         }
-        let before = score_view(&render, &truth, w, h).unwrap();
+        let before = score_view(&render, &truth, None, w, h).unwrap();
         for (i, v) in render.iter_mut().enumerate() {
             if (i / 3) % w < w / 2 {
                 *v = 1.0 - *v;
             }
         }
-        let after = score_view(&render, &truth, w, h).unwrap();
+        let after = score_view(&render, &truth, None, w, h).unwrap();
         assert_eq!(before.psnr_right, after.psnr_right);
         assert_eq!(before.ssim_right, after.ssim_right);
         assert_eq!(before.jnb_right, after.jnb_right);
@@ -262,11 +310,11 @@ mod tests {
     fn blank_render_has_nan_jnb_and_means_skip_it() {
         let (w, h) = (128, 128);
         let truth = scene(w, h);
-        let blank = score_view(&vec![0.0; w * h * 3], &truth, w, h).unwrap();
+        let blank = score_view(&vec![0.0; w * h * 3], &truth, None, w, h).unwrap();
         assert!(blank.jnb_right.is_nan() && blank.jnb_full.is_nan());
         assert!(blank.psnr_full.is_finite() && blank.ssim_full < 1.0);
 
-        let textured = score_view(&to_unit(&truth), &truth, w, h).unwrap();
+        let textured = score_view(&to_unit(&truth), &truth, None, w, h).unwrap();
         let mean = mean_metrics(&[blank, textured]);
         assert_eq!(mean.jnb_full, textured.jnb_full);
         assert_eq!(mean.jnb_right, textured.jnb_right);
@@ -277,14 +325,68 @@ mod tests {
     }
 
     #[test]
+    fn foreground_psnr_reads_only_the_masked_pixels() {
+        let (w, h) = (64, 32);
+        let truth = scene(w, h);
+        // Target: a square straddling the two halves. The render is exact on it and wrong
+        // everywhere else.
+        let mask: Vec<u8> = (0..w * h)
+            .map(|p| {
+                if (20..44).contains(&(p % w)) && (8..24).contains(&(p / w)) {
+                    255
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let mut render = to_unit(&truth);
+        for (p, &m) in mask.iter().enumerate() {
+            if m == 0 {
+                render[p * 3] = 1.0 - render[p * 3];
+            }
+        }
+        let m = score_view(&render, &truth, Some(&mask), w, h).unwrap();
+        assert_eq!(m.psnr_foreground, f64::INFINITY);
+        assert_eq!(m.psnr_foreground_right, f64::INFINITY);
+        assert!(m.psnr_full < 20.0, "{m:?}");
+        // One wrong channel value (by 51 levels) in the target's left part: the right half
+        // does not see it; the whole target's MSE is 51^2 / (3 * 24 * 16).
+        render[(10 * w + 25) * 3] = (truth[(10 * w + 25) * 3] as f32 + 51.0) / 255.0;
+        let m = score_view(&render, &truth, Some(&mask), w, h).unwrap();
+        assert_eq!(m.psnr_foreground_right, f64::INFINITY);
+        let expected = 10.0 * (255.0f64 * 255.0 * 3.0 * 24.0 * 16.0 / (51.0 * 51.0)).log10();
+        assert!((m.psnr_foreground - expected).abs() < 1e-9, "{m:?}");
+        // No mask, or an empty one: no foreground score.
+        let none = score_view(&render, &truth, None, w, h).unwrap();
+        assert!(none.psnr_foreground.is_nan() && none.psnr_foreground_right.is_nan());
+        let empty = score_view(&render, &truth, Some(&vec![0; w * h]), w, h).unwrap();
+        assert!(empty.psnr_foreground.is_nan());
+        assert_eq!(mean_metrics(&[none, m]).psnr_foreground, m.psnr_foreground);
+    }
+
+    #[test]
+    fn non_finite_renders_have_no_score() {
+        let truth = scene(32, 32);
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let mut render = to_unit(&truth);
+            render[5] = bad;
+            render[40] = bad;
+            assert_eq!(
+                score_view(&render, &truth, None, 32, 32),
+                Err(MetricError::NonFinite { count: 2 })
+            );
+        }
+    }
+
+    #[test]
     fn mismatched_buffers_are_errors() {
         let truth = scene(32, 32);
         assert!(matches!(
-            score_view(&to_unit(&truth), &truth, 32, 31),
+            score_view(&to_unit(&truth), &truth, None, 32, 31),
             Err(MetricError::BufferSize { .. })
         ));
         assert!(matches!(
-            score_view(&to_unit(&truth), &truth[..30], 32, 32),
+            score_view(&to_unit(&truth), &truth[..30], None, 32, 32),
             Err(MetricError::BufferSize { .. })
         ));
     }

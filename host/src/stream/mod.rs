@@ -17,7 +17,8 @@
 pub mod source;
 
 pub use source::{
-    Arrival, DatasetSource, FrameSource, SimulatorSource, SourceInfo, WatchOptions, WatchedFolder,
+    Arrival, DatasetSource, FrameSource, MaskedSource, SimulatorSource, SourceInfo, WatchOptions,
+    WatchedFolder,
 };
 
 use crate::checkpoint::{self, Checkpoint, Section};
@@ -63,11 +64,13 @@ pub struct AnytimePoint {
     pub frames_held: usize,
     pub held_out_views: usize,
     pub steps: u32,
-    /// Means over the held-out views: whole image and right half.
+    /// Means over the held-out views: whole image, right half, and foreground (NaN without
+    /// masks).
     pub psnr: f64,
     pub ssim: f64,
     pub psnr_right: f64,
     pub ssim_right: f64,
+    pub psnr_foreground: f64,
     /// Mean wall time per arrival since the previous point (ingest and training, not waiting).
     pub seconds_per_frame: f64,
     /// Resident memory of the process (MiB), NaN where it cannot be read.
@@ -423,7 +426,7 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
             background: info.background,
         };
         let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, None)?;
-        per_view.extend(train::view_metrics(&view, &scores)?);
+        per_view.extend(scores.iter().map(|s| s.metrics));
     }
     Ok((report::mean_metrics(&per_view), per_view.len()))
 }
@@ -451,6 +454,7 @@ fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
         ssim: metrics.ssim_full,
         psnr_right: metrics.psnr_right,
         ssim_right: metrics.ssim_right,
+        psnr_foreground: metrics.psnr_foreground,
         seconds_per_frame,
         rss_mib: resident_mib(),
     })
@@ -537,12 +541,12 @@ pub fn check_fresh_start(path: &Path, replace: bool) -> Result<()> {
 /// The anytime curve as CSV.
 pub fn curve_csv(curve: &[AnytimePoint]) -> String {
     let mut csv = String::from(
-        "frames_seen,frames_held,held_out_views,steps,psnr,ssim,psnr_right,ssim_right,seconds_per_frame,rss_mib\n",
+        "frames_seen,frames_held,held_out_views,steps,psnr,ssim,psnr_right,ssim_right,psnr_foreground,seconds_per_frame,rss_mib\n",
     );
     for p in curve {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{:.4},{:.5},{:.4},{:.5},{:.5},{:.2}",
+            "{},{},{},{},{:.4},{:.5},{:.4},{:.5},{:.4},{:.5},{:.2}",
             p.frames_seen,
             p.frames_held,
             p.held_out_views,
@@ -551,6 +555,7 @@ pub fn curve_csv(curve: &[AnytimePoint]) -> String {
             p.ssim,
             p.psnr_right,
             p.ssim_right,
+            p.psnr_foreground,
             p.seconds_per_frame,
             p.rss_mib
         );

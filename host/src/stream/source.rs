@@ -70,6 +70,48 @@ pub trait FrameSource {
     fn reload(&self, position: u64) -> Result<Frame>;
 }
 
+/// Another source with its frames' masks applied (`Frame::apply_mask`, the source's background
+/// colour where the mask is 0), for training and for scoring alike.
+pub struct MaskedSource<'a> {
+    inner: &'a mut dyn FrameSource,
+}
+
+impl<'a> MaskedSource<'a> {
+    pub fn new(inner: &'a mut dyn FrameSource) -> Self {
+        MaskedSource { inner }
+    }
+}
+
+impl FrameSource for MaskedSource<'_> {
+    fn info(&self) -> &SourceInfo {
+        self.inner.info()
+    }
+    fn next(&mut self, stop: &AtomicBool) -> Option<Arrival> {
+        let background = self.inner.info().background;
+        self.inner.next(stop).map(|arrival| match arrival {
+            Arrival::Frame(mut frame) => {
+                frame.apply_mask(background);
+                Arrival::Frame(frame)
+            }
+            bad => bad,
+        })
+    }
+    fn position(&self) -> u64 {
+        self.inner.position()
+    }
+    fn arrived(&self) -> &[String] {
+        self.inner.arrived()
+    }
+    fn seek(&mut self, position: u64, arrived: &[String]) -> Result<()> {
+        self.inner.seek(position, arrived)
+    }
+    fn reload(&self, position: u64) -> Result<Frame> {
+        let mut frame = self.inner.reload(position)?;
+        frame.apply_mask(self.inner.info().background);
+        Ok(frame)
+    }
+}
+
 /// A dataset folder read frame by frame in file order, optionally paced at `rate` frames per
 /// second (pacing never changes what is learned): SPEED+ / SHIRT / simulator output in label
 /// order, or a NeRF-synthetic scene's training split in `transforms_train.json` order
