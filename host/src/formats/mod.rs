@@ -1,6 +1,7 @@
 //! Dataset formats: one module per format, each producing a [`Dataset`]; [`open`] picks the
 //! format of a path. Formats depend on [`crate::dataset`], never the other way.
 
+pub mod camera;
 pub mod json;
 pub mod nerf_synthetic;
 pub mod nerfstudio;
