@@ -142,6 +142,8 @@ fn stream_idle_timeout_inf_waits_until_end_and_an_empty_stream_fails() {
         path_str(&watched),
         "--idle-timeout",
         "inf",
+        "--scene-box",
+        "-1,-1,-1,1,1,1",
         "--out",
         path_str(&out),
     ])
@@ -173,10 +175,17 @@ fn stream_with_only_black_frames_fails_without_a_score() {
     }
     std::fs::write(watched.join("END"), b"").unwrap();
     let out = scratch.path("out");
-    let result = orbit_nerf(&["stream", "--watch", path_str(&watched), "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let result = orbit_nerf(&[
+        "stream",
+        "--watch",
+        path_str(&watched),
+        "--scene-box",
+        "-1,-1,-1,1,1,1",
+        "--out",
+    ])
+    .arg(&out)
+    .output()
+    .unwrap();
     assert_clear_error("all black", &result, &["all black", "no usable frame"]);
     assert!(!out.join("checkpoint.onrf").exists(), "saved a checkpoint");
 }
