@@ -151,8 +151,8 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
     // The simulator writes masks: they are applied, and every model has a foreground PSNR.
     let header: Vec<&str> = report
         .lines()
-        .next()
-        .unwrap()
+        .find(|l| l.starts_with('|') && l.contains("PSNR"))
+        .expect("the model table")
         .split('|')
         .map(str::trim)
         .collect();

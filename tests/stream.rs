@@ -277,14 +277,17 @@ fn label_json(label: &Label) -> Vec<u8> {
 }
 
 /// A simulated set of `frames` frames in `dir/data`, its labels, and an empty watched folder
-/// `dir/watched` with the set's camera file.
+/// `dir/watched` with the set's camera file and its truth file (a stream takes the scene box
+/// from it; without one the box must be stated).
 fn empty_watched_folder(dir: &Path, frames: u32) -> (PathBuf, Vec<Label>, PathBuf) {
     let data = dir.join("data");
     simulated_set(&data, frames);
     let labels = speedplus::read_labels(&data.join("labels.json")).unwrap();
     let watched = dir.join("watched");
     std::fs::create_dir_all(&watched).unwrap();
-    std::fs::copy(data.join("camera.json"), watched.join("camera.json")).unwrap();
+    for file in ["camera.json", "truth.json"] {
+        std::fs::copy(data.join(file), watched.join(file)).unwrap();
+    }
     (data, labels, watched)
 }
 
