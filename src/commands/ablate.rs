@@ -6,7 +6,7 @@ use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{self, APPEARANCE, APPEARANCE_POSE, BASELINE, VariantResult};
 use orbit_nerf_host::dataset::{Dataset, split_every};
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
-use orbit_nerf_host::report::{self, ModelRow};
+use orbit_nerf_host::report::{self, ModelRow, format_or_na};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
 use orbit_nerf_host::train::to_rgb8;
 use std::fmt::Write as _;
@@ -407,10 +407,10 @@ fn sweep_table(level_header: &str, rows: &[&Level], level: fn(&LabelNoise) -> f3
             let after = pose.pose_after.unwrap_or_default();
             vec![
                 format!("{}", level(&l.noise)),
-                format!("{:.4}", ours.metrics.ssim_full),
-                format!("{:.4}", pose.metrics.ssim_full),
-                format!("{:.4}", ours.metrics.jnb_full),
-                format!("{:.4}", pose.metrics.jnb_full),
+                format_or_na(ours.metrics.ssim_full, 4),
+                format_or_na(pose.metrics.ssim_full, 4),
+                format_or_na(ours.metrics.jnb_full, 4),
+                format_or_na(pose.metrics.jnb_full, 4),
                 format!(
                     "{:.3} / {:.3}",
                     before.rotation_deg_mean, after.rotation_deg_mean

@@ -50,7 +50,7 @@ pub struct ModelRow {
 
 /// The paper-style ablation table (PSNR with 2 decimals, SSIM and JNB with 4, foreground PSNR
 /// with 2, training time in seconds with 1), followed by a note saying which JNB is reported, since JNB variants give
-/// different numbers on the same image. A NaN JNB shows as `n/a`.
+/// different numbers on the same image. A NaN (no SSIM window, no JNB edge block, no mask) shows as `n/a`.
 pub fn ablation_table(rows: &[ModelRow]) -> String {
     let header = [
         "model",
@@ -71,10 +71,10 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
             vec![
                 row.name.clone(),
                 format!("{:.2}", m.psnr_right),
-                format!("{:.4}", m.ssim_right),
+                format_or_na(m.ssim_right, 4),
                 format_or_na(m.jnb_right, 4),
                 format!("{:.2}", m.psnr_full),
-                format!("{:.4}", m.ssim_full),
+                format_or_na(m.ssim_full, 4),
                 format_or_na(m.jnb_full, 4),
                 format_or_na(m.psnr_foreground, 2),
                 format_or_na(m.psnr_foreground_right, 2),
@@ -134,7 +134,8 @@ pub fn pose_error_table(rows: &[(String, PoseErrors, PoseErrors)]) -> String {
     markdown_table(&header, &body)
 }
 
-fn format_or_na(value: f64, decimals: usize) -> String {
+/// `value` with `decimals` decimals, or `n/a` when it is NaN (a metric the view could not give).
+pub fn format_or_na(value: f64, decimals: usize) -> String {
     if value.is_nan() {
         "n/a".to_string()
     } else {

@@ -10,7 +10,8 @@ use crate::metrics::{self, ImageRef, JnbVariant, MetricError};
 ///
 /// - PSNR in dB on 8-bit values; `f64::INFINITY` when the quantised render equals the reference
 ///   (as scikit-image reports it; nothing is capped).
-/// - SSIM as [`metrics::ssim`] (mean over the three channels).
+/// - SSIM as [`metrics::ssim`] (mean over the three channels). `f64::NAN` when the region is
+///   smaller than SSIM's 11x11 window (a tiny training size still gets its PSNR).
 /// - Foreground PSNR: the same PSNR over the pixels the view's mask marks as target (all three
 ///   channels), whole image and right half, since whole-image PSNR of a spacecraft view is mostly
 ///   black sky. `f64::NAN` when the view has no mask or the region holds no target pixel.
@@ -39,9 +40,8 @@ pub struct ViewMetrics {
 /// itself rounded to 8 bits, as an image library's 8-bit gray conversion gives it to the
 /// reference JNB code.
 ///
-/// Errors when the render holds a non-finite value (a model gone to NaN is never a score),
-/// when a buffer does not match `width x height x 3`, or when a region is smaller than SSIM's
-/// 11x11 window.
+/// Errors when the render holds a non-finite value (a model gone to NaN is never a score) or
+/// when a buffer does not match `width x height x 3`.
 pub fn score_view(
     render: &[f32],
     truth: &[u8],
@@ -67,10 +67,10 @@ pub fn score_view(
 
     Ok(ViewMetrics {
         psnr_right: metrics::psnr(&rendered_right, &truth_right)?,
-        ssim_right: metrics::ssim(&rendered_right, &truth_right)?,
+        ssim_right: ssim_or_nan(&rendered_right, &truth_right)?,
         jnb_right: jnb_blur(&luma_right)?,
         psnr_full: metrics::psnr(&rendered_image, &truth_image)?,
-        ssim_full: metrics::ssim(&rendered_image, &truth_image)?,
+        ssim_full: ssim_or_nan(&rendered_image, &truth_image)?,
         jnb_full: jnb_blur(&luma_image)?,
         psnr_foreground: foreground_psnr(&rendered, truth, mask, (width, height), 0)?,
         psnr_foreground_right: foreground_psnr(&rendered, truth, mask, (width, height), left)?,
@@ -109,9 +109,10 @@ fn foreground_psnr(
     Ok(10.0 * (255.0f64 * 255.0 / mse).log10())
 }
 
-/// Mean over views. PSNR and SSIM are plain means (an infinite PSNR makes the mean infinite,
-/// which is the honest summary of a perfect view). JNB and foreground PSNR ignore NaN entries
-/// (views with no edge block, no mask or no target pixel) and are NaN only when every view is. No views gives NaN everywhere.
+/// Mean over views. PSNR is a plain mean (an infinite PSNR makes the mean infinite, which is the
+/// honest summary of a perfect view). SSIM, JNB and foreground PSNR ignore NaN entries (views
+/// too small for SSIM, with no edge block, no mask or no target pixel) and are NaN only when
+/// every view is. No views gives NaN everywhere.
 pub fn mean_metrics(views: &[ViewMetrics]) -> ViewMetrics {
     let field_mean =
         |field: fn(&ViewMetrics) -> f64| mean(&views.iter().map(field).collect::<Vec<f64>>());
@@ -126,10 +127,10 @@ pub fn mean_metrics(views: &[ViewMetrics]) -> ViewMetrics {
     };
     ViewMetrics {
         psnr_right: field_mean(|v| v.psnr_right),
-        ssim_right: field_mean(|v| v.ssim_right),
+        ssim_right: field_mean_ignoring_nan(|v| v.ssim_right),
         jnb_right: field_mean_ignoring_nan(|v| v.jnb_right),
         psnr_full: field_mean(|v| v.psnr_full),
-        ssim_full: field_mean(|v| v.ssim_full),
+        ssim_full: field_mean_ignoring_nan(|v| v.ssim_full),
         jnb_full: field_mean_ignoring_nan(|v| v.jnb_full),
         psnr_foreground: field_mean_ignoring_nan(|v| v.psnr_foreground),
         psnr_foreground_right: field_mean_ignoring_nan(|v| v.psnr_foreground_right),
@@ -153,6 +154,14 @@ fn rec601_luma(rgb: &[u8]) -> Vec<u8> {
             (luma + 0.5).floor().min(255.0) as u8
         })
         .collect()
+}
+
+/// SSIM of two RGB8 images, NaN when they are smaller than its window.
+fn ssim_or_nan(rendered: &ImageRef<u8>, truth: &ImageRef<u8>) -> Result<f64, MetricError> {
+    match metrics::ssim(rendered, truth) {
+        Err(MetricError::TooSmall { .. }) => Ok(f64::NAN),
+        other => other,
+    }
 }
 
 /// JNB blur of a gray image, NaN when there is no edge block to measure.
@@ -322,6 +331,24 @@ mod tests {
         assert_eq!(mean.ssim_full, (blank.ssim_full + textured.ssim_full) / 2.0);
         assert!(mean_metrics(&[blank, blank]).jnb_full.is_nan());
         assert!(mean_metrics(&[]).ssim_full.is_nan());
+    }
+
+    #[test]
+    fn views_smaller_than_the_ssim_window_score_psnr_and_no_ssim() {
+        // 16x16: the whole image has a window, the 8-pixel right half does not.
+        let (w, h) = (16, 16);
+        let truth = scene(w, h);
+        let mut render = to_unit(&truth);
+        render[(w - 1) * 3] = 1.0 - render[(w - 1) * 3];
+        let small = score_view(&render, &truth, None, w, h).unwrap();
+        assert!(small.psnr_right.is_finite() && small.psnr_full.is_finite());
+        assert!(small.ssim_right.is_nan(), "{small:?}");
+        assert!(small.ssim_full.is_finite() && small.ssim_full < 1.0);
+
+        let large = score_view(&to_unit(&scene(64, 64)), &scene(64, 64), None, 64, 64).unwrap();
+        let mean = mean_metrics(&[small, large]);
+        assert_eq!(mean.ssim_right, large.ssim_right);
+        assert!(mean_metrics(&[small, small]).ssim_right.is_nan());
     }
 
     #[test]
