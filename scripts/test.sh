@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every test of the project: the workspace's unit and end-to-end tests, then the core's
 # cross-compilation for the embedded targets (with and without defmt), and the onboard checks
-# (scripts/onboard.sh). Installs the targets.
+# (scripts/onboard.sh) and the Slurm check (scripts/slurm.sh). Installs the targets.
 # Ends with one line counting everything that passed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -26,6 +26,9 @@ builds=$((builds + 1))
 # The onboard checks: x86-64 = aarch64 training, Cortex-M = host rendering (under QEMU).
 ./scripts/onboard.sh | tee "$log"
 onboard=$(grep -c '^check passed:' "$log" || true)
-builds=$((builds + onboard))
+# The Slurm check: a sweep as a job array on a one-node Slurm = the same sweep run locally.
+./scripts/slurm.sh | tee "$log"
+slurm=$(grep -c '^check passed:' "$log" || true)
+builds=$((builds + onboard + slurm))
 # Tests and cross-builds together (a failure stops the script before this line).
 echo "summary: $((passed + builds)) passed, 0 failed"

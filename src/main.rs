@@ -5,7 +5,7 @@
 mod commands;
 
 use clap::{Parser, Subcommand};
-use commands::{ablate, bench, demo, eval, render, simulate, stream, train};
+use commands::{ablate, bench, demo, eval, render, simulate, stream, sweep, train};
 
 #[derive(Parser)]
 #[command(name = "orbit-nerf", version, about)]
@@ -33,6 +33,8 @@ enum Command {
     /// Ingest frames one at a time (dataset folder, watched folder, simulator) into a fixed
     /// frame store, training as they arrive; anytime quality, checkpoints, resume.
     Stream(stream::StreamArgs),
+    /// Run a sweep description: locally as parallel processes, or as a Slurm job array.
+    Sweep(sweep::SweepArgs),
 }
 
 fn main() {
@@ -46,6 +48,7 @@ fn main() {
         Command::Simulate(args) => simulate::run(&args),
         Command::Ablate(args) => ablate::run(&args),
         Command::Stream(args) => stream::run(&args),
+        Command::Sweep(args) => sweep::run(&args),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -52,6 +52,18 @@ pub struct VariantResult {
     pub pose_after: Option<PoseErrors>,
 }
 
+/// A dataset with its held-out split, the exact poses when known, and how a model is
+/// evaluated on it: what every model of an experiment shares.
+pub struct Experiment<'a> {
+    pub dataset: &'a Dataset,
+    pub truth: Option<&'a [Pose]>,
+    pub train_idx: &'a [usize],
+    pub test_idx: &'a [usize],
+    pub threads: usize,
+    /// Steps fitting each held-out view's embedding on its left half.
+    pub fit_steps: u32,
+}
+
 /// The pose a frame's label becomes with its learned correction: rays start at the corrected
 /// origin (`centre + dt`, turned about `pivot` if there is one) and their directions are
 /// rotated by the correction in the world frame.
@@ -82,61 +94,102 @@ pub fn run_variant(
     fit_steps: u32,
     on_step: &mut dyn FnMut(&StepReport),
 ) -> Result<VariantResult> {
-    let mut config = train::fit_config(base, dataset, train_idx.len());
+    let mut config = *base;
     config.embedding_dim = variant.embedding_dim;
     config.pose_correction = variant.pose_correction;
-    let executor = RayonExecutor::new(threads)?;
-    let plan = MemoryPlan::new(&config);
-    let mut arena = vec![0u8; plan.total];
-    let mut trainer = Trainer::new(config, &mut arena)
-        .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
-    train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
-    let start = Instant::now();
-    for _ in 0..config.steps {
-        let report = trainer
-            .step(&executor)
-            .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
-        on_step(&report);
-    }
-    let train_seconds = start.elapsed().as_secs_f64();
-    let scores = train::evaluate(&mut trainer, &executor, dataset, test_idx, fit_steps, None)?;
-    let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
-    let (pose_before, pose_after) = match truth {
-        Some(truth) => {
-            let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
-            let exact: Vec<Pose> = train_idx
-                .iter()
-                .filter_map(|&i| truth.get(i).copied())
-                .collect();
-            let dim = config.embedding_dim as usize;
-            let corrected: Vec<Pose> = labels
-                .iter()
-                .enumerate()
-                .map(|(slot, label)| {
-                    let params = trainer.frame_parameters(slot).unwrap_or(&[]);
-                    let correction = if config.pose_correction {
-                        PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]))
-                    } else {
-                        PoseCorrection::default()
-                    };
-                    corrected_pose(label, &correction, config.pose_pivot_point())
-                })
-                .collect();
-            (
-                Some(report::pose_errors(&labels, &exact)),
-                Some(report::pose_errors(&corrected, &exact)),
-            )
-        }
-        None => (None, None),
+    let experiment = Experiment {
+        dataset,
+        truth,
+        train_idx,
+        test_idx,
+        threads,
+        fit_steps,
     };
-    Ok(VariantResult {
-        variant,
-        train_seconds,
-        metrics: report::mean_metrics(&per_view),
-        renders: scores.into_iter().map(|s| s.render).collect(),
-        pose_before,
-        pose_after,
-    })
+    let mut result = experiment.run(&config, on_step, None)?;
+    result.variant = variant;
+    Ok(result)
+}
+
+impl Experiment<'_> {
+    /// Train `config` (its scene box and capacities fitted to the dataset) on the training
+    /// views (calling `on_step` after each step), save its checkpoint to `checkpoint` when
+    /// given, and evaluate it on the held-out views. The result's variant is named after
+    /// nothing (`""`), with the config's embedding size and pose correction.
+    pub fn run(
+        &self,
+        config: &Config,
+        on_step: &mut dyn FnMut(&StepReport),
+        checkpoint: Option<&std::path::Path>,
+    ) -> Result<VariantResult> {
+        let (dataset, train_idx) = (self.dataset, self.train_idx);
+        let config = train::fit_config(config, dataset, train_idx.len());
+        let executor = RayonExecutor::new(self.threads)?;
+        let plan = MemoryPlan::new(&config);
+        let mut arena = vec![0u8; plan.total];
+        let mut trainer = Trainer::new(config, &mut arena)
+            .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
+        train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
+        let start = Instant::now();
+        for _ in 0..config.steps {
+            let report = trainer
+                .step(&executor)
+                .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
+            on_step(&report);
+        }
+        let train_seconds = start.elapsed().as_secs_f64();
+        if let Some(path) = checkpoint {
+            train::save_checkpoint(path, &trainer)?;
+        }
+        let scores = train::evaluate(
+            &mut trainer,
+            &executor,
+            dataset,
+            self.test_idx,
+            self.fit_steps,
+            None,
+        )?;
+        let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+        let (pose_before, pose_after) = match self.truth {
+            Some(truth) => {
+                let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
+                let exact: Vec<Pose> = train_idx
+                    .iter()
+                    .filter_map(|&i| truth.get(i).copied())
+                    .collect();
+                let dim = config.embedding_dim as usize;
+                let corrected: Vec<Pose> = labels
+                    .iter()
+                    .enumerate()
+                    .map(|(slot, label)| {
+                        let params = trainer.frame_parameters(slot).unwrap_or(&[]);
+                        let correction = if config.pose_correction {
+                            PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]))
+                        } else {
+                            PoseCorrection::default()
+                        };
+                        corrected_pose(label, &correction, config.pose_pivot_point())
+                    })
+                    .collect();
+                (
+                    Some(report::pose_errors(&labels, &exact)),
+                    Some(report::pose_errors(&corrected, &exact)),
+                )
+            }
+            None => (None, None),
+        };
+        Ok(VariantResult {
+            variant: Variant {
+                name: "",
+                embedding_dim: config.embedding_dim,
+                pose_correction: config.pose_correction,
+            },
+            train_seconds,
+            metrics: report::mean_metrics(&per_view),
+            renders: scores.into_iter().map(|s| s.render).collect(),
+            pose_before,
+            pose_after,
+        })
+    }
 }
 
 #[cfg(test)]

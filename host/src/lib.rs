@@ -12,6 +12,7 @@ pub mod report;
 pub mod scene_box;
 pub mod sim;
 pub mod stream;
+pub mod sweep;
 pub mod train;
 pub mod values;
 

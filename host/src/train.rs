@@ -11,16 +11,30 @@ use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
 
+/// Default steps fitting a held-out view's appearance embedding.
+pub const DEFAULT_FIT_STEPS: u32 = 50;
+
 /// Read a full config from a TOML file: every field named, either at the top level or in a
 /// `[config]` table (as in the budget files, `budgets/*.toml`).
 pub fn read_config(path: &Path) -> Result<Config> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    let table: toml::Table = toml::from_str(&text)
+    parse_config(path, &text)
+}
+
+/// [`read_config`] of a file's text (`path` names it in errors).
+pub fn parse_config(path: &Path, text: &str) -> Result<Config> {
+    let table: toml::Table = toml::from_str(text)
         .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
     let table = match table.get("config") {
         Some(toml::Value::Table(inner)) => inner.clone(),
         _ => table,
     };
+    config_from_table(path, "", table)
+}
+
+/// A config from a TOML table holding every field, checked; errors name `path` and the field
+/// (after `prefix`, e.g. `variants[0].set.`, where the table sits inside a larger file).
+pub fn config_from_table(path: &Path, prefix: &str, table: toml::Table) -> Result<Config> {
     let config: Config = serde_path_to_error::deserialize(table).map_err(|e| {
         let field = e.path().to_string();
         let reason = e.into_inner().to_string();
@@ -28,12 +42,12 @@ pub fn read_config(path: &Path) -> Result<Config> {
         if field == "." {
             HostError::invalid(path, format!("not a valid config: {reason}"))
         } else {
-            HostError::field(path, field, reason)
+            HostError::field(path, format!("{prefix}{field}"), reason)
         }
     })?;
     config.validate().map_err(|e| match e {
         orbit_nerf_core::Error::InvalidConfig { field } => {
-            HostError::field(path, field, "out of range")
+            HostError::field(path, format!("{prefix}{field}"), "out of range")
         }
         other => HostError::invalid(path, other.to_string()),
     })?;

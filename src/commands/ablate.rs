@@ -3,11 +3,14 @@
 
 use super::{FIT_STEPS, Fallible, SceneBox, choose_box, parse_scene_box};
 use orbit_nerf_core::{Config, Pose};
-use orbit_nerf_host::ablation::{self, APPEARANCE, APPEARANCE_POSE, BASELINE, VariantResult};
+use orbit_nerf_host::ablation::{
+    self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
+};
 use orbit_nerf_host::dataset::{Dataset, split_every};
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
-use orbit_nerf_host::report::{self, ModelRow, format_or_na};
+use orbit_nerf_host::report::{self, ModelOutcome, ModelRow, NoiseLevelResult};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
+use orbit_nerf_host::sweep::{NoiseLevels, SweepDescription};
 use orbit_nerf_host::train::to_rgb8;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -103,7 +106,7 @@ pub fn simulated(
 
 /// Load a SPEED+ folder with its exact poses (when it has `truth.json`), its masks applied
 /// when `masks`.
-fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
+pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let set = speedplus::load(
         path,
         &LoadOptions {
@@ -240,15 +243,14 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
     Ok(())
 }
 
-/// One noise level of a sweep: the two models (ours, ours + pose) trained on the same
-/// simulated labels.
-struct Level {
+/// Train and score `sweep`'s tasks of one noise level (the two models, ours and ours + pose,
+/// on the same simulated labels).
+fn run_level(
+    args: &AblateArgs,
+    sweep: &orbit_nerf_host::sweep::Sweep,
     noise: LabelNoise,
-    ours: VariantResult,
-    pose: VariantResult,
-}
-
-fn run_level(args: &AblateArgs, base: &Config, noise: LabelNoise, dir: &Path) -> Fallible<Level> {
+    dir: &Path,
+) -> Fallible<NoiseLevelResult> {
     let (dataset, truth) = simulated(
         "synthetic",
         args.frames,
@@ -263,205 +265,87 @@ fn run_level(args: &AblateArgs, base: &Config, noise: LabelNoise, dir: &Path) ->
         noise.rotation_deg,
         noise.translation_m * 1000.0
     );
-    let run = |variant| -> Fallible<VariantResult> {
-        let r = ablation::run_variant(
-            &dataset,
-            truth.as_deref(),
-            &train_idx,
-            &test_idx,
-            base,
-            variant,
-            args.threads,
-            args.fit_steps,
-            &mut |_| {},
-        )?;
+    let experiment = Experiment {
+        dataset: &dataset,
+        truth: truth.as_deref(),
+        train_idx: &train_idx,
+        test_idx: &test_idx,
+        threads: args.threads,
+        fit_steps: args.fit_steps,
+    };
+    let run = |variant: &str| -> Fallible<ModelOutcome> {
+        let task = (sweep.tasks.iter())
+            .find(|t| t.noise == Some(noise) && t.variant == variant)
+            .ok_or_else(|| format!("the sweep has no task `{variant}` at this level"))?;
+        let r = experiment.run(&task.config, &mut |_| {}, None)?;
         let after = r.pose_after.unwrap_or_default();
         println!(
             "  {}: SSIM {:.4}, rotation error {:.3} deg, position error {:.1} mm",
-            variant.name,
+            variant,
             r.metrics.ssim_full,
             after.rotation_deg_mean,
             after.translation_mean * 1000.0
         );
-        Ok(r)
+        Ok(ModelOutcome {
+            metrics: r.metrics,
+            pose_before: r.pose_before,
+            pose_after: r.pose_after,
+        })
     };
-    let ours = run(APPEARANCE)?;
-    let pose = run(APPEARANCE_POSE)?;
-    Ok(Level { noise, ours, pose })
-}
-
-/// One of the two sweeps: its levels, its section of the report and its plots.
-struct SweepSpec {
-    on: bool,
-    noises: Vec<LabelNoise>,
-    title: &'static str,
-    column: &'static str,
-    /// File name stem of its plots.
-    name: &'static str,
-    axis: &'static str,
-    level: fn(&LabelNoise) -> f32,
-    error_label: &'static str,
-    error: fn(&report::PoseErrors) -> f64,
-}
-
-fn check_levels(flag: &str, levels: &[f32]) -> Fallible<()> {
-    match levels.iter().find(|l| !(l.is_finite() && **l >= 0.0)) {
-        Some(bad) => Err(format!("{flag}: {bad} is not a noise level").into()),
-        None => Ok(()),
-    }
+    let ours = run(APPEARANCE.name)?;
+    let pose = run(APPEARANCE_POSE.name)?;
+    Ok(NoiseLevelResult { noise, ours, pose })
 }
 
 /// Both sweeps of the paper: rotation noise alone, then translation noise alone (the noise-free
-/// level is trained once and shared). Per level: SSIM and JNB of ours with and without pose
-/// correction, and the pose error of the labels before and after correction.
+/// level is trained once and shared), as a sweep description's levels and models. Per level:
+/// SSIM and JNB of ours with and without pose correction, and the pose error of the labels
+/// before and after correction.
 fn sweep(args: &AblateArgs) -> Fallible<()> {
-    check_levels("--levels", &args.levels)?;
-    check_levels("--translation-levels", &args.translation_levels)?;
-    let base = base_config(args)?;
-    let rotation_noise = |deg: f32| LabelNoise {
-        rotation_deg: deg,
-        translation_m: 0.0,
+    let description = SweepDescription {
+        scene: Some("synthetic".into()),
+        frames: Some(args.frames),
+        size: Some(args.size.into()),
+        config: Some(
+            (args.config.as_ref()).map_or("spacecraft".into(), |p| p.display().to_string()),
+        ),
+        steps: Some(args.steps),
+        holdout: Some(args.holdout),
+        fit_steps: Some(args.fit_steps),
+        masks: Some(!args.no_masks),
+        noise: Some(NoiseLevels {
+            rotation_deg: match args.sweep {
+                Sweep::Translation => Vec::new(),
+                _ => args.levels.clone(),
+            },
+            translation_mm: match args.sweep {
+                Sweep::Rotation => Vec::new(),
+                _ => args.translation_levels.clone(),
+            },
+        }),
+        ..SweepDescription::default()
     };
-    let translation_noise = |mm: f32| LabelNoise {
-        rotation_deg: 0.0,
-        translation_m: mm / 1000.0,
-    };
-    let sweeps = [
-        SweepSpec {
-            on: args.sweep != Sweep::Translation,
-            noises: args.levels.iter().map(|&d| rotation_noise(d)).collect(),
-            title: "Rotation noise (exact positions)",
-            column: "E_R deg",
-            name: "rotation",
-            axis: "rotation noise (deg)",
-            level: |n| n.rotation_deg,
-            error_label: "rotation error (deg)",
-            error: |e| e.rotation_deg_mean,
-        },
-        SweepSpec {
-            on: args.sweep != Sweep::Rotation,
-            noises: (args.translation_levels.iter())
-                .map(|&mm| translation_noise(mm))
-                .collect(),
-            title: "Translation noise (exact attitudes)",
-            column: "E_T mm",
-            name: "translation",
-            axis: "translation noise (mm)",
-            level: |n| n.translation_m * 1000.0,
-            error_label: "camera position error (mm)",
-            error: |e| e.translation_mean * 1000.0,
-        },
-    ];
-    let mut levels: Vec<Level> = Vec::new();
-    for &noise in sweeps.iter().filter(|s| s.on).flat_map(|s| &s.noises) {
-        if levels.iter().any(|l| l.noise == noise) {
-            continue;
-        }
+    let sweep = description.check(Path::new("ablate --pose-noise"), Path::new(""))?;
+    let mut levels = Vec::new();
+    for noise in sweep.levels().into_iter().flatten() {
         let dir = args.out.join(format!(
             "noise_r{}deg_t{}mm",
             noise.rotation_deg,
             noise.translation_m * 1000.0
         ));
-        levels.push(run_level(args, &base, noise, &dir)?);
+        levels.push(run_level(args, &sweep, noise, &dir)?);
     }
-    let find = |noise: LabelNoise| levels.iter().find(|l| l.noise == noise);
     let mut text = format!(
         "# Pose-noise sweeps on `synthetic`\n\n{} frames of {} px, every {}th held out, {} steps per model, held-out embeddings fitted for {} steps; JNB: paper variant, lower is sharper. Pose errors are the means over the training frames, against the simulator's exact poses.\n",
-        args.frames, args.size, args.holdout, base.steps, args.fit_steps
+        args.frames, args.size, args.holdout, sweep.base.steps, args.fit_steps
     );
-    for sweep in sweeps.iter().filter(|s| s.on) {
-        let rows: Vec<&Level> = sweep.noises.iter().filter_map(|&n| find(n)).collect();
-        let name = sweep.name;
-        writeln!(text, "\n## {}\n", sweep.title)?;
-        text.push_str(&sweep_table(sweep.column, &rows, sweep.level));
-        writeln!(
-            text,
-            "\n![SSIM]({name}_ssim.png)\n![{}]({name}_error.png)",
-            sweep.error_label
-        )?;
-        plot_sweep(&args.out, sweep, &rows)?;
-    }
+    text.push_str(&report::pose_noise_sections(
+        &args.out,
+        &sweep.rotation,
+        &sweep.translation,
+        &levels,
+    )?);
     orbit_nerf_host::io::write_atomic(&args.out.join("pose_noise.md"), text.as_bytes())?;
     println!("{text}");
-    Ok(())
-}
-
-/// One sweep's table: a row per level, the level in the first column.
-fn sweep_table(level_header: &str, rows: &[&Level], level: fn(&LabelNoise) -> f32) -> String {
-    let header = [
-        level_header,
-        "SSIM ours",
-        "SSIM ours+pose",
-        "JNB ours",
-        "JNB ours+pose",
-        "rot. error labels / corrected deg",
-        "about view axis labels / corrected deg",
-        "across view axis labels / corrected deg",
-        "position error labels / corrected mm",
-    ];
-    let rows: Vec<Vec<String>> = rows
-        .iter()
-        .map(|l| {
-            let (ours, pose) = (&l.ours, &l.pose);
-            let before = pose.pose_before.unwrap_or_default();
-            let after = pose.pose_after.unwrap_or_default();
-            vec![
-                format!("{}", level(&l.noise)),
-                format_or_na(ours.metrics.ssim_full, 4),
-                format_or_na(pose.metrics.ssim_full, 4),
-                format_or_na(ours.metrics.jnb_full, 4),
-                format_or_na(pose.metrics.jnb_full, 4),
-                format!(
-                    "{:.3} / {:.3}",
-                    before.rotation_deg_mean, after.rotation_deg_mean
-                ),
-                format!(
-                    "{:.3} / {:.3}",
-                    before.about_view_axis_deg_mean, after.about_view_axis_deg_mean
-                ),
-                format!(
-                    "{:.3} / {:.3}",
-                    before.across_view_axis_deg_mean, after.across_view_axis_deg_mean
-                ),
-                format!(
-                    "{:.1} / {:.1}",
-                    before.translation_mean * 1000.0,
-                    after.translation_mean * 1000.0
-                ),
-            ]
-        })
-        .collect();
-    report::markdown_table(&header, &rows)
-}
-
-/// `NAME_ssim.png` (held-out SSIM with and without pose correction) and `NAME_error.png` (the
-/// labels' pose error before and after correction) against the noise level.
-fn plot_sweep(out: &Path, sweep: &SweepSpec, rows: &[&Level]) -> Fallible<()> {
-    let points = |f: &dyn Fn(&Level) -> f64| -> Vec<(f64, f64)> {
-        rows.iter()
-            .map(|l| ((sweep.level)(&l.noise) as f64, f(l)))
-            .collect()
-    };
-    let error = |errors: Option<report::PoseErrors>| (sweep.error)(&errors.unwrap_or_default());
-    report::line_plot(
-        &out.join(format!("{}_ssim.png", sweep.name)),
-        &format!("held-out SSIM vs {}", sweep.axis),
-        sweep.axis,
-        "SSIM",
-        &[
-            ("ours", points(&|l| l.ours.metrics.ssim_full)),
-            ("ours + pose", points(&|l| l.pose.metrics.ssim_full)),
-        ],
-    )?;
-    report::line_plot(
-        &out.join(format!("{}_error.png", sweep.name)),
-        &format!("{} of the training poses", sweep.error_label),
-        sweep.axis,
-        sweep.error_label,
-        &[
-            ("labels", points(&|l| error(l.pose.pose_before))),
-            ("corrected", points(&|l| error(l.pose.pose_after))),
-        ],
-    )?;
     Ok(())
 }

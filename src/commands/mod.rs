@@ -8,6 +8,7 @@ pub mod eval;
 pub mod render;
 pub mod simulate;
 pub mod stream;
+pub mod sweep;
 pub mod train;
 
 use clap::Args;
@@ -111,7 +112,7 @@ fn choose_box(
 }
 
 /// Default steps fitting a held-out view's appearance embedding.
-const FIT_STEPS: u32 = 50;
+const FIT_STEPS: u32 = orbit_nerf_host::train::DEFAULT_FIT_STEPS;
 
 /// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (the loader
 /// sets that itself).

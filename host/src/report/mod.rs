@@ -12,12 +12,14 @@
 
 mod canvas;
 mod plot;
+mod pose_noise;
 mod poses;
 mod strip;
 mod tables;
 mod views;
 
 pub use plot::line_plot;
+pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};
 pub use poses::{
     PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,
 };

@@ -1,0 +1,706 @@
+//! Sweep descriptions: one TOML file naming the data (a simulated scene or a dataset folder),
+//! the base config (a built-in profile or a config file), the variants (named config
+//! overrides), the label-noise levels, the seeds and the budget. Reading one checks every
+//! field (errors name the file and the field) and expands it into its tasks, each one model
+//! trained and scored in its own process: `sweep run` runs them on this machine, `sweep slurm`
+//! as a Slurm job array, `ablate --pose-noise` builds its levels here.
+//!
+//! ```toml
+//! scene = "synthetic"          # a preset or a scene file; or data = "path/to/speedplus"
+//! frames = 400                 # simulated scenes only
+//! size = 128
+//! config = "spacecraft"        # default, spacecraft, tiny, standard, render, or a file
+//! steps = 2000
+//! seeds = [0, 1]
+//!
+//! [noise]                      # optional: the paper's pose-noise sweeps
+//! rotation_deg = [0, 0.2, 0.4, 0.8, 1.6]
+//! translation_mm = [0, 2, 4, 8, 16]
+//!
+//! [[variants]]                 # optional: default baseline, ours, ours + pose
+//! name = "ours"                #   (with noise levels: ours, ours + pose)
+//! set = { embedding_dim = 32, pose_correction = false }
+//! ```
+
+pub mod results;
+pub mod slurm;
+
+use crate::ablation::{APPEARANCE, APPEARANCE_POSE, BASELINE, Variant};
+use crate::error::{HostError, Result};
+use crate::scene_box::parse_box;
+use crate::sim::Scene;
+use crate::sim::scene::LabelNoise;
+use crate::train::{config_from_table, parse_config};
+use orbit_nerf_core::Config;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+/// A sweep description as written: every field optional except where [`Sweep`] says.
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepDescription {
+    /// A scene preset or scene file to simulate.
+    pub scene: Option<String>,
+    /// A SPEED+-format dataset folder (instead of `scene`).
+    pub data: Option<PathBuf>,
+    /// Frames to simulate (default 400).
+    pub frames: Option<u32>,
+    /// Image size in pixels (default 128).
+    pub size: Option<u32>,
+    /// A built-in profile (see [`PROFILES`]) or a config file (default `spacecraft`).
+    pub config: Option<String>,
+    /// Training steps of every model (default: the base config's).
+    pub steps: Option<u32>,
+    /// One task per seed for every variant and level (default: the base config's seed).
+    pub seeds: Option<Vec<u64>>,
+    /// Every N-th view is held out (default 8).
+    pub holdout: Option<usize>,
+    /// Steps fitting each held-out view's embedding (default 50).
+    pub fit_steps: Option<u32>,
+    /// Apply the foreground masks (default true).
+    pub masks: Option<bool>,
+    /// `"xmin,ymin,zmin,xmax,ymax,zmax"`, as `--scene-box`.
+    pub scene_box: Option<String>,
+    pub noise: Option<NoiseLevels>,
+    #[serde(default)]
+    pub variants: Vec<VariantSpec>,
+}
+
+/// Label-noise levels: the rotation sweep's (degrees, exact positions) and the translation
+/// sweep's (mm per axis, exact attitudes).
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoiseLevels {
+    #[serde(default)]
+    pub rotation_deg: Vec<f32>,
+    #[serde(default)]
+    pub translation_mm: Vec<f32>,
+}
+
+/// A named set of config overrides (fields of the config, as in a config file).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VariantSpec {
+    pub name: String,
+    #[serde(default)]
+    pub set: toml::Table,
+}
+
+/// The built-in base configs: the core's two presets and the budget profiles.
+pub const PROFILES: [(&str, Option<&str>); 5] = [
+    ("default", None),
+    ("spacecraft", None),
+    ("tiny", Some(include_str!("../../../budgets/tiny.toml"))),
+    (
+        "standard",
+        Some(include_str!("../../../budgets/standard.toml")),
+    ),
+    ("render", Some(include_str!("../../../budgets/render.toml"))),
+];
+
+/// Where a sweep's frames come from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Source {
+    /// A scene preset name or a scene file, simulated per task.
+    Scene(String),
+    /// A dataset folder.
+    Data(PathBuf),
+}
+
+/// One model to train and score: a variant of the base config with a seed, on the labels of
+/// one noise level.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Task {
+    pub index: usize,
+    /// `level, variant, seed` in words, for tables and messages.
+    pub name: String,
+    pub variant: String,
+    pub noise: Option<LabelNoise>,
+    pub seed: u64,
+    pub config: Config,
+}
+
+/// A checked sweep description and its tasks.
+#[derive(Clone, Debug)]
+pub struct Sweep {
+    /// The description file (or what stands for it), named in errors.
+    pub origin: PathBuf,
+    pub source: Source,
+    pub frames: u32,
+    pub size: u16,
+    pub holdout: usize,
+    pub fit_steps: u32,
+    pub masks: bool,
+    pub scene_box: Option<([f32; 3], [f32; 3])>,
+    /// The base config's file, when it is one (a box it sets is used).
+    pub config_file: Option<PathBuf>,
+    /// The base config with the sweep's steps.
+    pub base: Config,
+    /// The two pose-noise sweeps' levels (empty without `[noise]`).
+    pub rotation: Vec<LabelNoise>,
+    pub translation: Vec<LabelNoise>,
+    pub tasks: Vec<Task>,
+}
+
+/// Largest accepted values: beyond them a value is a typo, not a sweep.
+const MAX_FRAMES: u32 = 100_000;
+const MAX_SIZE: u32 = 4096;
+const MAX_FIT_STEPS: u32 = 100_000;
+const MAX_ROTATION_DEG: f32 = 180.0;
+const MAX_TRANSLATION_MM: f32 = 100_000.0;
+const MAX_TASKS: usize = 100_000;
+
+impl Sweep {
+    /// Read and check a description file; relative paths in it are relative to its folder.
+    pub fn read(path: &Path) -> Result<Sweep> {
+        let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+        let table: toml::Table = toml::from_str(&text)
+            .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
+        let description: SweepDescription =
+            serde_path_to_error::deserialize(table).map_err(|e| {
+                let field = e.path().to_string();
+                let reason = e.into_inner().to_string();
+                if field == "." {
+                    HostError::invalid(path, format!("not a valid sweep description: {reason}"))
+                } else {
+                    HostError::field(path, field, reason)
+                }
+            })?;
+        let dir = path.parent().unwrap_or(Path::new(""));
+        description.check(path, dir)
+    }
+}
+
+impl Sweep {
+    /// The sweep's noise levels in task order, each once (`[None]` without `[noise]`).
+    pub fn levels(&self) -> Vec<Option<LabelNoise>> {
+        let mut levels = Vec::new();
+        for task in &self.tasks {
+            if !levels.contains(&task.noise) {
+                levels.push(task.noise);
+            }
+        }
+        levels
+    }
+}
+
+impl SweepDescription {
+    /// Check every field and expand the tasks. `origin` is named in errors; relative paths are
+    /// taken relative to `dir`.
+    pub fn check(&self, origin: &Path, dir: &Path) -> Result<Sweep> {
+        let field = |name: &str, reason: String| HostError::field(origin, name, reason);
+        let relative = |p: &Path| -> PathBuf {
+            if p.is_absolute() || dir.as_os_str().is_empty() {
+                p.to_path_buf()
+            } else {
+                dir.join(p)
+            }
+        };
+        let source = match (&self.scene, &self.data) {
+            (Some(_), Some(_)) => {
+                return Err(field("data", "give `scene` or `data`, not both".into()));
+            }
+            (None, None) => {
+                return Err(HostError::invalid(
+                    origin,
+                    "names no frames: give `scene` (a preset or scene file) or `data`",
+                ));
+            }
+            (Some(scene), None) => {
+                let is_preset = crate::sim::scene::preset_names().any(|p| p == scene);
+                let scene = if is_preset {
+                    scene.clone()
+                } else {
+                    relative(Path::new(scene)).display().to_string()
+                };
+                Scene::load(&scene).map_err(|e| field("scene", e.to_string()))?;
+                Source::Scene(scene)
+            }
+            (None, Some(data)) => {
+                let data = relative(data);
+                if !data.is_dir() {
+                    return Err(field("data", format!("{} is not a folder", data.display())));
+                }
+                Source::Data(data)
+            }
+        };
+        let simulated = matches!(source, Source::Scene(_));
+        if !simulated && self.frames.is_some() {
+            return Err(field(
+                "frames",
+                "only a simulated `scene` has a frame count".into(),
+            ));
+        }
+        if !simulated && self.noise.is_some() {
+            return Err(field(
+                "noise",
+                "label noise needs a simulated `scene` (exact poses)".into(),
+            ));
+        }
+        let frames = self.frames.unwrap_or(400);
+        if !(2..=MAX_FRAMES).contains(&frames) {
+            return Err(field(
+                "frames",
+                format!("{frames} is not between 2 and {MAX_FRAMES}"),
+            ));
+        }
+        let size = self.size.unwrap_or(128);
+        if !(8..=MAX_SIZE).contains(&size) {
+            return Err(field(
+                "size",
+                format!("{size} is not between 8 and {MAX_SIZE} px"),
+            ));
+        }
+        let holdout = self.holdout.unwrap_or(8);
+        if holdout < 2 || (simulated && holdout > frames as usize) {
+            return Err(field(
+                "holdout",
+                format!("{holdout}: every N-th view is held out, N from 2 to the frame count"),
+            ));
+        }
+        let fit_steps = self.fit_steps.unwrap_or(crate::train::DEFAULT_FIT_STEPS);
+        if fit_steps > MAX_FIT_STEPS {
+            return Err(field(
+                "fit_steps",
+                format!("{fit_steps} is more than {MAX_FIT_STEPS}"),
+            ));
+        }
+        let scene_box = (self.scene_box.as_deref())
+            .map(parse_box)
+            .transpose()
+            .map_err(|e| field("scene_box", e))?;
+        let (mut base, config_file) = base_config(origin, self.config.as_deref(), &relative)?;
+        if let Some(steps) = self.steps {
+            if steps == 0 {
+                return Err(field("steps", "0: a model needs at least one step".into()));
+            }
+            base.steps = steps;
+            base.warmup_steps = base.warmup_steps.min(steps);
+        }
+        let seeds = self.seeds.clone().unwrap_or_else(|| vec![base.seed]);
+        if seeds.is_empty() {
+            return Err(field("seeds", "empty: give at least one seed".into()));
+        }
+        if let Some(seed) =
+            (1..seeds.len()).find_map(|i| seeds[..i].contains(&seeds[i]).then_some(seeds[i]))
+        {
+            return Err(field("seeds", format!("{seed} is listed twice")));
+        }
+        let (rotation, translation) = match &self.noise {
+            Some(noise) => noise_levels(origin, noise)?,
+            None => (Vec::new(), Vec::new()),
+        };
+        let variants = if self.variants.is_empty() {
+            default_variants(self.noise.is_some())
+        } else {
+            self.variants.clone()
+        };
+        let mut configs: Vec<(String, Config)> = Vec::new();
+        for (i, variant) in variants.iter().enumerate() {
+            let name = variant.name.trim();
+            if name.is_empty()
+                || !name
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || " _+.-".contains(c))
+            {
+                return Err(field(
+                    &format!("variants[{i}].name"),
+                    format!(
+                        "`{}`: use letters, digits, spaces and _ + . -",
+                        variant.name
+                    ),
+                ));
+            }
+            if configs.iter().any(|(n, _)| n == name) {
+                return Err(field(
+                    &format!("variants[{i}].name"),
+                    format!("`{name}` is used twice"),
+                ));
+            }
+            let config =
+                with_overrides(origin, &format!("variants[{i}].set."), &base, &variant.set)?;
+            configs.push((name.to_string(), config));
+        }
+        // The noise-free level is shared by both sweeps: trained once.
+        let mut levels: Vec<Option<LabelNoise>> = Vec::new();
+        for &noise in rotation.iter().chain(&translation) {
+            if !levels.contains(&Some(noise)) {
+                levels.push(Some(noise));
+            }
+        }
+        if levels.is_empty() {
+            levels.push(None);
+        }
+        let count = levels.len() * configs.len() * seeds.len();
+        if count > MAX_TASKS {
+            return Err(HostError::invalid(
+                origin,
+                format!("{count} tasks: more than {MAX_TASKS}"),
+            ));
+        }
+        let mut tasks = Vec::with_capacity(count);
+        for level in &levels {
+            for (variant, config) in &configs {
+                for &seed in &seeds {
+                    let mut config = *config;
+                    config.seed = seed;
+                    let level_name = level.map_or(String::new(), |n| {
+                        format!(
+                            "noise {} deg / {} mm, ",
+                            n.rotation_deg,
+                            n.translation_m * 1000.0
+                        )
+                    });
+                    tasks.push(Task {
+                        index: tasks.len(),
+                        name: format!("{level_name}{variant}, seed {seed}"),
+                        variant: variant.clone(),
+                        noise: *level,
+                        seed,
+                        config,
+                    });
+                }
+            }
+        }
+        Ok(Sweep {
+            origin: origin.to_path_buf(),
+            source,
+            frames,
+            size: size as u16,
+            holdout,
+            fit_steps,
+            masks: self.masks.unwrap_or(true),
+            scene_box,
+            config_file,
+            base,
+            rotation,
+            translation,
+            tasks,
+        })
+    }
+}
+
+/// The base config a description names (default `spacecraft`), and its file when it is one.
+fn base_config(
+    origin: &Path,
+    name: Option<&str>,
+    relative: &dyn Fn(&Path) -> PathBuf,
+) -> Result<(Config, Option<PathBuf>)> {
+    let name = name.unwrap_or("spacecraft");
+    match PROFILES.iter().find(|(profile, _)| *profile == name) {
+        Some(("default", _)) => Ok((Config::DEFAULT, None)),
+        Some((_, None)) => Ok((Config::SPACECRAFT, None)),
+        Some((profile, Some(text))) => {
+            let builtin = Path::new("<built-in>").join(format!("{profile}.toml"));
+            Ok((parse_config(&builtin, text)?, None))
+        }
+        None => {
+            let path = relative(Path::new(name));
+            if !path.is_file() {
+                let names: Vec<&str> = PROFILES.iter().map(|(n, _)| *n).collect();
+                return Err(HostError::field(
+                    origin,
+                    "config",
+                    format!(
+                        "`{name}` is no config file and no profile ({})",
+                        names.join(", ")
+                    ),
+                ));
+            }
+            Ok((crate::train::read_config(&path)?, Some(path)))
+        }
+    }
+}
+
+/// The paper's models as variants: with noise levels the two the pose-noise sweeps compare,
+/// otherwise the ablation's three.
+fn default_variants(noise: bool) -> Vec<VariantSpec> {
+    let models: &[Variant] = if noise {
+        &[APPEARANCE, APPEARANCE_POSE]
+    } else {
+        &[BASELINE, APPEARANCE, APPEARANCE_POSE]
+    };
+    models
+        .iter()
+        .map(|v| VariantSpec {
+            name: v.name.to_string(),
+            set: toml::Table::from_iter([
+                (
+                    "embedding_dim".to_string(),
+                    toml::Value::Integer(v.embedding_dim.into()),
+                ),
+                (
+                    "pose_correction".to_string(),
+                    toml::Value::Boolean(v.pose_correction),
+                ),
+            ]),
+        })
+        .collect()
+}
+
+/// `base` with the fields in `set` replaced; errors name `prefix` and the field.
+fn with_overrides(origin: &Path, prefix: &str, base: &Config, set: &toml::Table) -> Result<Config> {
+    let mut table = toml::Table::try_from(base)
+        .map_err(|e| HostError::invalid(origin, format!("config encoding failed: {e}")))?;
+    for (key, value) in set {
+        if !table.contains_key(key) {
+            return Err(HostError::field(
+                origin,
+                format!("{prefix}{key}"),
+                "not a config field",
+            ));
+        }
+        table.insert(key.clone(), value.clone());
+    }
+    config_from_table(origin, prefix, table)
+}
+
+/// The rotation and translation levels as label noise, each checked.
+fn noise_levels(origin: &Path, noise: &NoiseLevels) -> Result<(Vec<LabelNoise>, Vec<LabelNoise>)> {
+    let check = |name: &str, levels: &[f32], max: f32| -> Result<()> {
+        match levels
+            .iter()
+            .position(|l| !(l.is_finite() && (0.0..=max).contains(l)))
+        {
+            Some(i) => Err(HostError::field(
+                origin,
+                format!("noise.{name}[{i}]"),
+                format!("{} is not a noise level from 0 to {max}", levels[i]),
+            )),
+            None => Ok(()),
+        }
+    };
+    check("rotation_deg", &noise.rotation_deg, MAX_ROTATION_DEG)?;
+    check("translation_mm", &noise.translation_mm, MAX_TRANSLATION_MM)?;
+    if noise.rotation_deg.is_empty() && noise.translation_mm.is_empty() {
+        return Err(HostError::field(
+            origin,
+            "noise",
+            "no level: give rotation_deg, translation_mm or both",
+        ));
+    }
+    let rotation = (noise.rotation_deg.iter())
+        .map(|&deg| LabelNoise {
+            rotation_deg: deg,
+            translation_m: 0.0,
+        })
+        .collect();
+    let translation = (noise.translation_mm.iter())
+        .map(|&mm| LabelNoise {
+            rotation_deg: 0.0,
+            translation_m: mm / 1000.0,
+        })
+        .collect();
+    Ok((rotation, translation))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `text` written as `sweep.toml` in a fresh folder, read and checked.
+    fn read(text: &str) -> (tempfile::TempDir, Result<Sweep>) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sweep.toml");
+        std::fs::write(&path, text).unwrap();
+        let sweep = Sweep::read(&path);
+        (dir, sweep)
+    }
+
+    #[test]
+    fn a_description_expands_into_levels_times_variants_times_seeds() {
+        let (_dir, sweep) = read(
+            r#"
+scene = "synthetic"
+frames = 16
+size = 48
+config = "tiny"
+steps = 30
+seeds = [3, 4]
+
+[noise]
+rotation_deg = [0, 1.6]
+translation_mm = [0, 16]
+
+[[variants]]
+name = "ours"
+set = { embedding_dim = 8 }
+
+[[variants]]
+name = "ours + pose"
+set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
+"#,
+        );
+        let sweep = sweep.unwrap();
+        // The noise-free level is shared: 3 levels x 2 variants x 2 seeds.
+        assert_eq!(sweep.tasks.len(), 12);
+        assert_eq!(sweep.levels().len(), 3);
+        assert_eq!((sweep.rotation.len(), sweep.translation.len()), (2, 2));
+        assert_eq!(sweep.translation[1].translation_m, 0.016);
+        for (i, task) in sweep.tasks.iter().enumerate() {
+            assert_eq!(task.index, i);
+            assert_eq!(task.config.steps, 30);
+            assert_eq!(task.config.seed, [3, 4][i % 2]);
+            assert_eq!(task.config.embedding_dim, 8);
+            assert_eq!(task.config.pose_correction, task.variant == "ours + pose");
+            let lr = if task.config.pose_correction {
+                0.02
+            } else {
+                sweep.base.learning_rate
+            };
+            assert_eq!(task.config.learning_rate, lr);
+        }
+        let last = sweep.tasks.last().unwrap();
+        assert_eq!(last.name, "noise 0 deg / 16 mm, ours + pose, seed 4");
+        assert_eq!(
+            last.noise,
+            Some(LabelNoise {
+                rotation_deg: 0.0,
+                translation_m: 0.016
+            })
+        );
+    }
+
+    #[test]
+    fn without_variants_the_papers_models_are_swept() {
+        let (_dir, ablation) = read("scene = \"lightbox\"\n");
+        let names: Vec<String> = ablation
+            .unwrap()
+            .tasks
+            .into_iter()
+            .map(|t| t.variant)
+            .collect();
+        assert_eq!(names, ["baseline", "ours", "ours + pose"]);
+        let (_dir, noise) = read("scene = \"synthetic\"\n[noise]\nrotation_deg = [0.2]\n");
+        let tasks = noise.unwrap().tasks;
+        let names: Vec<&str> = tasks.iter().map(|t| t.variant.as_str()).collect();
+        assert_eq!(names, ["ours", "ours + pose"]);
+        assert_eq!(
+            tasks[1].config.embedding_dim,
+            crate::ablation::EMBEDDING_DIM
+        );
+        assert!(tasks[1].config.pose_correction);
+        assert_eq!(tasks[0].config, {
+            let mut c = Config::SPACECRAFT;
+            c.embedding_dim = crate::ablation::EMBEDDING_DIM;
+            c
+        });
+    }
+
+    #[test]
+    fn every_bad_field_is_an_error_naming_the_file_and_the_field() {
+        let scene = "scene = \"synthetic\"\n";
+        let cases: Vec<(String, &str)> = vec![
+            (format!("{scene}size = 0"), "size"),
+            (format!("{scene}size = -3"), "size"),
+            (format!("{scene}size = 100000"), "size"),
+            (format!("{scene}frames = 1"), "frames"),
+            (format!("{scene}frames = 1e9"), "frames"),
+            (format!("{scene}steps = 0"), "steps"),
+            (format!("{scene}holdout = 1"), "holdout"),
+            (format!("{scene}frames = 8\nholdout = 9"), "holdout"),
+            (format!("{scene}fit_steps = 1000000"), "fit_steps"),
+            (format!("{scene}seeds = []"), "seeds"),
+            (format!("{scene}seeds = [1, 2, 1]"), "seeds"),
+            (format!("{scene}config = \"huge\""), "config"),
+            (format!("{scene}scene_box = \"0,0,0,1,1\""), "scene_box"),
+            (
+                format!("{scene}[noise]\nrotation_deg = [0, inf]"),
+                "noise.rotation_deg[1]",
+            ),
+            (
+                format!("{scene}[noise]\nrotation_deg = [nan]"),
+                "noise.rotation_deg[0]",
+            ),
+            (
+                format!("{scene}[noise]\ntranslation_mm = [-1]"),
+                "noise.translation_mm[0]",
+            ),
+            (
+                format!("{scene}[noise]\nrotation_deg = [200]"),
+                "noise.rotation_deg[0]",
+            ),
+            (format!("{scene}[noise]"), "noise"),
+            (format!("{scene}[noise]\nsideways = [1]"), "noise.sideways"),
+            (
+                format!("{scene}[[variants]]\nname = \"\""),
+                "variants[0].name",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a|b\""),
+                "variants[0].name",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\n[[variants]]\nname = \"a\""),
+                "variants[1].name",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nset = {{ lerning_rate = 0.1 }}"),
+                "variants[0].set.lerning_rate",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nset = {{ steps = \"many\" }}"),
+                "variants[0].set.steps",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nset = {{ learning_rate = inf }}"),
+                "variants[0].set.learning_rate",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nset = {{ features = 0 }}"),
+                "variants[0].set.features",
+            ),
+            ("scene = \"no-such-scene\"".into(), "scene"),
+            ("scene = \"synthetic\"\ndata = \".\"".into(), "data"),
+            ("data = \"no-such-folder\"".into(), "data"),
+            ("data = \".\"\nframes = 8".into(), "frames"),
+            ("data = \".\"\n[noise]\nrotation_deg = [1]".into(), "noise"),
+        ];
+        for (text, field) in cases {
+            let (dir, sweep) = read(&text);
+            let error = sweep
+                .err()
+                .unwrap_or_else(|| panic!("accepted:\n{text}"))
+                .to_string();
+            let file = dir.path().join("sweep.toml").display().to_string();
+            assert!(
+                error.starts_with(&file) && error.contains(&format!("field `{field}`")),
+                "{text}\n=> {error}"
+            );
+        }
+        // Whole-file errors still name the file.
+        for text in [
+            "size = 3",
+            "scene = \"synthetic\"\nsizes = 3",
+            "scene = [",
+            "scene = \"synthetic\"\nseeds = 3",
+        ] {
+            let (dir, sweep) = read(text);
+            let error = sweep
+                .err()
+                .unwrap_or_else(|| panic!("accepted:\n{text}"))
+                .to_string();
+            assert!(
+                error.starts_with(&dir.path().join("sweep.toml").display().to_string()),
+                "{error}"
+            );
+        }
+    }
+
+    #[test]
+    fn relative_paths_are_relative_to_the_description() {
+        let (dir, _) = read("");
+        std::fs::create_dir(dir.path().join("frames")).unwrap();
+        std::fs::write(
+            dir.path().join("model.toml"),
+            include_str!("../../../budgets/tiny.toml"),
+        )
+        .unwrap();
+        let path = dir.path().join("sweep.toml");
+        std::fs::write(&path, "data = \"frames\"\nconfig = \"model.toml\"\n").unwrap();
+        let sweep = Sweep::read(&path).unwrap();
+        assert_eq!(sweep.source, Source::Data(dir.path().join("frames")));
+        assert_eq!(sweep.config_file, Some(dir.path().join("model.toml")));
+        assert_eq!(sweep.base.features, 8);
+    }
+}

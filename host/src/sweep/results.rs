@@ -1,0 +1,529 @@
+//! A sweep's results: the folder of each task (`<out>/tasks/<index>/`: `result.json`,
+//! `render.png`, `checkpoint.onrf`, `log.txt`), the record a task writes, and the merged
+//! tables and figures (`sweep.csv`, `sweep.md`, `renders.png`, and with noise levels the
+//! pose-noise sections and plots). Records hold nothing of where or how a task ran (no path,
+//! no thread count, no time), so a task gives the same bytes locally and on a cluster.
+
+use super::{Source, Sweep, Task};
+use crate::error::{HostError, Result};
+use crate::io::{write_atomic, write_png};
+use crate::report::{
+    ModelOutcome, NoiseLevelResult, PoseErrors, ViewMetrics, format_or_na, markdown_table,
+    mean_metrics, pose_noise_sections, side_by_side,
+};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// A task's record, written last (atomically): its presence marks the task finished.
+pub const RESULT: &str = "result.json";
+/// The first held-out view as rendered by the task's model.
+pub const RENDER: &str = "render.png";
+pub const CHECKPOINT: &str = "checkpoint.onrf";
+/// The task's output (the local runner and the Slurm script both write it there).
+pub const LOG: &str = "log.txt";
+
+/// The folder of task `index` under the sweep's output folder `out`.
+pub fn task_dir(out: &Path, index: usize) -> PathBuf {
+    out.join("tasks").join(index.to_string())
+}
+
+/// What one task gave. Non-finite numbers are written as `null` (shown as n/a).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskResult {
+    pub index: usize,
+    pub name: String,
+    pub variant: String,
+    pub seed: u64,
+    pub rotation_noise_deg: f32,
+    pub translation_noise_mm: f32,
+    pub steps: u32,
+    pub held_out_views: usize,
+    /// Means over the held-out views.
+    pub metrics: Metrics,
+    /// Pose error of the training labels and of the corrected labels against the exact poses.
+    pub pose_before: Option<Poses>,
+    pub pose_after: Option<Poses>,
+    /// FNV-1a (64 bit) of the checkpoint file's bytes, hex.
+    pub checkpoint_fnv1a: String,
+}
+
+/// [`ViewMetrics`] as stored.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Metrics {
+    pub psnr_full: Option<f64>,
+    pub psnr_right: Option<f64>,
+    pub psnr_foreground: Option<f64>,
+    pub psnr_foreground_right: Option<f64>,
+    pub ssim_full: Option<f64>,
+    pub ssim_right: Option<f64>,
+    pub jnb_full: Option<f64>,
+    pub jnb_right: Option<f64>,
+}
+
+/// [`PoseErrors`] as stored.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Poses {
+    pub rotation_deg_mean: Option<f64>,
+    pub rotation_deg_median: Option<f64>,
+    pub translation_mean: Option<f64>,
+    pub translation_median: Option<f64>,
+    pub about_view_axis_deg_mean: Option<f64>,
+    pub across_view_axis_deg_mean: Option<f64>,
+    pub frames: usize,
+}
+
+fn stored(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+fn loaded(v: Option<f64>) -> f64 {
+    v.unwrap_or(f64::NAN)
+}
+
+impl From<ViewMetrics> for Metrics {
+    fn from(m: ViewMetrics) -> Self {
+        Metrics {
+            psnr_full: stored(m.psnr_full),
+            psnr_right: stored(m.psnr_right),
+            psnr_foreground: stored(m.psnr_foreground),
+            psnr_foreground_right: stored(m.psnr_foreground_right),
+            ssim_full: stored(m.ssim_full),
+            ssim_right: stored(m.ssim_right),
+            jnb_full: stored(m.jnb_full),
+            jnb_right: stored(m.jnb_right),
+        }
+    }
+}
+
+impl From<Metrics> for ViewMetrics {
+    fn from(m: Metrics) -> Self {
+        ViewMetrics {
+            psnr_full: loaded(m.psnr_full),
+            psnr_right: loaded(m.psnr_right),
+            psnr_foreground: loaded(m.psnr_foreground),
+            psnr_foreground_right: loaded(m.psnr_foreground_right),
+            ssim_full: loaded(m.ssim_full),
+            ssim_right: loaded(m.ssim_right),
+            jnb_full: loaded(m.jnb_full),
+            jnb_right: loaded(m.jnb_right),
+        }
+    }
+}
+
+impl From<PoseErrors> for Poses {
+    fn from(e: PoseErrors) -> Self {
+        Poses {
+            rotation_deg_mean: stored(e.rotation_deg_mean),
+            rotation_deg_median: stored(e.rotation_deg_median),
+            translation_mean: stored(e.translation_mean),
+            translation_median: stored(e.translation_median),
+            about_view_axis_deg_mean: stored(e.about_view_axis_deg_mean),
+            across_view_axis_deg_mean: stored(e.across_view_axis_deg_mean),
+            frames: e.frames,
+        }
+    }
+}
+
+impl From<Poses> for PoseErrors {
+    fn from(e: Poses) -> Self {
+        PoseErrors {
+            rotation_deg_mean: loaded(e.rotation_deg_mean),
+            rotation_deg_median: loaded(e.rotation_deg_median),
+            translation_mean: loaded(e.translation_mean),
+            translation_median: loaded(e.translation_median),
+            about_view_axis_deg_mean: loaded(e.about_view_axis_deg_mean),
+            across_view_axis_deg_mean: loaded(e.across_view_axis_deg_mean),
+            frames: e.frames,
+        }
+    }
+}
+
+/// FNV-1a, 64 bit: the checkpoint fingerprint of the records.
+pub fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |hash, &b| {
+        (hash ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+pub fn write_result(out: &Path, result: &TaskResult) -> Result<()> {
+    let path = task_dir(out, result.index).join(RESULT);
+    let mut text = serde_json::to_string_pretty(result)
+        .map_err(|e| HostError::invalid(&path, format!("encoding failed: {e}")))?;
+    text.push('\n');
+    write_atomic(&path, text.as_bytes())
+}
+
+/// Task `task`'s record under `out`, `None` when the task has not finished; an error when the
+/// record is unreadable or belongs to another task (another description wrote into `out`).
+pub fn read_result(out: &Path, task: &Task) -> Result<Option<TaskResult>> {
+    let path = task_dir(out, task.index).join(RESULT);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(HostError::io(&path, e)),
+    };
+    let result: TaskResult = serde_json::from_str(&text)
+        .map_err(|e| HostError::invalid(&path, format!("not a task record: {e}")))?;
+    if result.index != task.index || result.name != task.name {
+        return Err(HostError::invalid(
+            &path,
+            format!(
+                "holds task `{}`, but task {} of this description is `{}`: the folder belongs to another sweep",
+                result.name, task.index, task.name
+            ),
+        ));
+    }
+    Ok(Some(result))
+}
+
+/// Indices of the tasks without a record under `out`: not run yet, failed or running.
+pub fn unfinished(sweep: &Sweep, out: &Path) -> Result<Vec<usize>> {
+    let mut missing = Vec::new();
+    for task in &sweep.tasks {
+        if read_result(out, task)?.is_none() {
+            missing.push(task.index);
+        }
+    }
+    Ok(missing)
+}
+
+/// Merge every task's record under `out` into `sweep.csv`, `sweep.md` and `renders.png` (and
+/// with noise levels the pose-noise sections and their plots); returns the markdown. Errors
+/// naming the unfinished tasks and their logs when any is.
+pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
+    let mut results = Vec::new();
+    let mut missing = Vec::new();
+    for task in &sweep.tasks {
+        match read_result(out, task)? {
+            Some(result) => results.push(result),
+            None => missing.push(task.index),
+        }
+    }
+    if !missing.is_empty() {
+        let logs: Vec<String> = (missing.iter().take(5))
+            .map(|&i| task_dir(out, i).join(LOG).display().to_string())
+            .collect();
+        return Err(HostError::invalid(
+            out,
+            format!(
+                "{} of {} tasks have no result (indices {}); their logs: {}",
+                missing.len(),
+                sweep.tasks.len(),
+                array_spec(&missing),
+                logs.join(", ")
+            ),
+        ));
+    }
+    write_atomic(&out.join("sweep.csv"), csv(&results).as_bytes())?;
+    let mut text = format!(
+        "# Sweep `{}` on `{}`\n\n{}, every {}th view held out, {} steps per model, held-out embeddings fitted for {} steps; {} tasks. JNB: paper variant, lower is sharper. Pose errors: mean over the training frames, against the exact poses.\n\n",
+        sweep
+            .origin
+            .file_name()
+            .unwrap_or_default()
+            .to_string_lossy(),
+        match &sweep.source {
+            Source::Scene(scene) => scene.clone(),
+            Source::Data(data) => data
+                .file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into(),
+        },
+        match &sweep.source {
+            Source::Scene(_) => format!("{} frames of {} px", sweep.frames, sweep.size),
+            Source::Data(_) => format!("{} px", sweep.size),
+        },
+        sweep.holdout,
+        sweep.base.steps,
+        sweep.fit_steps,
+        results.len()
+    );
+    text.push_str(&table(
+        &results,
+        !sweep.rotation.is_empty() || !sweep.translation.is_empty(),
+    ));
+    if write_renders(sweep, out)? {
+        text.push_str("\n## First held-out view, every task\n\n![renders](renders.png)\n");
+    }
+    let levels = noise_levels(sweep, &results);
+    if !levels.is_empty() {
+        if sweep.tasks.iter().any(|t| t.seed != sweep.tasks[0].seed) {
+            text.push_str("\nThe pose-noise tables and plots show the mean over the seeds.\n");
+        }
+        text.push_str(&pose_noise_sections(
+            out,
+            &sweep.rotation,
+            &sweep.translation,
+            &levels,
+        )?);
+    }
+    write_atomic(&out.join("sweep.md"), text.as_bytes())?;
+    Ok(text)
+}
+
+fn fixed(value: Option<f64>, decimals: usize) -> String {
+    format_or_na(loaded(value), decimals)
+}
+
+fn pose_pair(
+    before: Option<Poses>,
+    after: Option<Poses>,
+    f: fn(&Poses) -> Option<f64>,
+    scale: f64,
+) -> String {
+    match (before, after) {
+        (Some(b), Some(a)) => format!(
+            "{} / {}",
+            format_or_na(loaded(f(&b)) * scale, 3),
+            format_or_na(loaded(f(&a)) * scale, 3)
+        ),
+        _ => "n/a".into(),
+    }
+}
+
+/// The markdown table: a row per task.
+fn table(results: &[TaskResult], noise: bool) -> String {
+    let mut header = vec!["task", "variant", "seed"];
+    if noise {
+        header.extend(["rot. noise deg", "pos. noise mm"]);
+    }
+    header.extend([
+        "PSNR dB",
+        "right dB",
+        "fg dB",
+        "SSIM",
+        "JNB",
+        "rot. error labels / corrected deg",
+        "position error labels / corrected mm",
+        "checkpoint fnv1a",
+    ]);
+    let rows: Vec<Vec<String>> = results
+        .iter()
+        .map(|r| {
+            let mut row = vec![r.index.to_string(), r.variant.clone(), r.seed.to_string()];
+            if noise {
+                row.push(r.rotation_noise_deg.to_string());
+                row.push(r.translation_noise_mm.to_string());
+            }
+            let m = &r.metrics;
+            row.extend([
+                fixed(m.psnr_full, 2),
+                fixed(m.psnr_right, 2),
+                fixed(m.psnr_foreground, 2),
+                fixed(m.ssim_full, 4),
+                fixed(m.jnb_full, 4),
+                pose_pair(r.pose_before, r.pose_after, |p| p.rotation_deg_mean, 1.0),
+                pose_pair(r.pose_before, r.pose_after, |p| p.translation_mean, 1000.0),
+                r.checkpoint_fnv1a.clone(),
+            ]);
+            row
+        })
+        .collect();
+    markdown_table(&header, &rows)
+}
+
+/// The CSV: a row per task, every stored number (empty where n/a).
+fn csv(results: &[TaskResult]) -> String {
+    let number = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+    let poses = |p: Option<Poses>| -> [String; 4] {
+        match p {
+            Some(p) => [
+                number(p.rotation_deg_mean),
+                number(p.about_view_axis_deg_mean),
+                number(p.across_view_axis_deg_mean),
+                number(p.translation_mean),
+            ],
+            None => Default::default(),
+        }
+    };
+    let mut text = String::from(
+        "index,name,variant,seed,rotation_noise_deg,translation_noise_mm,steps,held_out_views,psnr_full,psnr_right,psnr_foreground,psnr_foreground_right,ssim_full,ssim_right,jnb_full,jnb_right,labels_rotation_deg,labels_about_view_axis_deg,labels_across_view_axis_deg,labels_position_m,corrected_rotation_deg,corrected_about_view_axis_deg,corrected_across_view_axis_deg,corrected_position_m,checkpoint_fnv1a\n",
+    );
+    for r in results {
+        let m = &r.metrics;
+        let cells: Vec<String> = [
+            r.index.to_string(),
+            format!("\"{}\"", r.name),
+            r.variant.clone(),
+            r.seed.to_string(),
+            r.rotation_noise_deg.to_string(),
+            r.translation_noise_mm.to_string(),
+            r.steps.to_string(),
+            r.held_out_views.to_string(),
+        ]
+        .into_iter()
+        .chain(
+            [
+                m.psnr_full,
+                m.psnr_right,
+                m.psnr_foreground,
+                m.psnr_foreground_right,
+                m.ssim_full,
+                m.ssim_right,
+                m.jnb_full,
+                m.jnb_right,
+            ]
+            .map(number),
+        )
+        .chain(poses(r.pose_before))
+        .chain(poses(r.pose_after))
+        .chain([r.checkpoint_fnv1a.clone()])
+        .collect();
+        text.push_str(&cells.join(","));
+        text.push('\n');
+    }
+    text
+}
+
+/// `renders.png`: every task's first held-out view side by side, captioned with the task's
+/// index and variant; false (and nothing written) when the tasks' renders differ in size.
+fn write_renders(sweep: &Sweep, out: &Path) -> Result<bool> {
+    let mut images = Vec::new();
+    for task in &sweep.tasks {
+        let path = task_dir(out, task.index).join(RENDER);
+        let image = image::open(&path)
+            .map_err(|e| HostError::invalid(&path, format!("not a readable PNG: {e}")))?
+            .to_rgb8();
+        images.push((format!("{}: {}", task.index, task.variant), image));
+    }
+    let Some((_, first)) = images.first() else {
+        return Ok(false);
+    };
+    let (w, h) = first.dimensions();
+    if images.iter().any(|(_, image)| image.dimensions() != (w, h)) {
+        return Ok(false);
+    }
+    let tiles: Vec<(&str, &[u8])> = (images.iter())
+        .map(|(label, image)| (label.as_str(), image.as_raw().as_slice()))
+        .collect();
+    let (sw, sh, strip) = side_by_side(&tiles, w, h);
+    write_png(&out.join("renders.png"), sw, sh, 3, &strip)?;
+    Ok(true)
+}
+
+/// Per noise level, the means over the seeds of `ours` and `ours + pose` (the pose-noise
+/// report's two models); empty when the sweep has no noise levels or lacks either model.
+fn noise_levels(sweep: &Sweep, results: &[TaskResult]) -> Vec<NoiseLevelResult> {
+    let (ours, pose) = (
+        crate::ablation::APPEARANCE.name,
+        crate::ablation::APPEARANCE_POSE.name,
+    );
+    let mut levels: Vec<NoiseLevelResult> = Vec::new();
+    for task in &sweep.tasks {
+        let Some(noise) = task.noise else {
+            return Vec::new();
+        };
+        if levels.iter().any(|l| l.noise == noise) {
+            continue;
+        }
+        let outcome = |variant: &str| -> Option<ModelOutcome> {
+            let runs: Vec<&TaskResult> = (sweep.tasks.iter().zip(results))
+                .filter(|(t, _)| t.noise == Some(noise) && t.variant == variant)
+                .map(|(_, r)| r)
+                .collect();
+            if runs.is_empty() {
+                return None;
+            }
+            let metrics: Vec<ViewMetrics> = runs.iter().map(|r| r.metrics.into()).collect();
+            let mean_poses = |f: fn(&TaskResult) -> Option<Poses>| -> Option<PoseErrors> {
+                let all: Vec<PoseErrors> = runs
+                    .iter()
+                    .filter_map(|r| f(r))
+                    .map(PoseErrors::from)
+                    .collect();
+                (all.len() == runs.len()).then(|| mean_pose_errors(&all))
+            };
+            Some(ModelOutcome {
+                metrics: mean_metrics(&metrics),
+                pose_before: mean_poses(|r| r.pose_before),
+                pose_after: mean_poses(|r| r.pose_after),
+            })
+        };
+        match (outcome(ours), outcome(pose)) {
+            (Some(ours), Some(pose)) => levels.push(NoiseLevelResult { noise, ours, pose }),
+            _ => return Vec::new(),
+        }
+    }
+    levels
+}
+
+/// Field-wise mean of non-empty `errors`.
+fn mean_pose_errors(errors: &[PoseErrors]) -> PoseErrors {
+    let mean = |f: fn(&PoseErrors) -> f64| errors.iter().map(f).sum::<f64>() / errors.len() as f64;
+    PoseErrors {
+        rotation_deg_mean: mean(|e| e.rotation_deg_mean),
+        rotation_deg_median: mean(|e| e.rotation_deg_median),
+        translation_mean: mean(|e| e.translation_mean),
+        translation_median: mean(|e| e.translation_median),
+        about_view_axis_deg_mean: mean(|e| e.about_view_axis_deg_mean),
+        across_view_axis_deg_mean: mean(|e| e.across_view_axis_deg_mean),
+        frames: errors[0].frames,
+    }
+}
+
+/// Indices as a Slurm `--array` list: runs of consecutive indices as ranges (`0-3,5,7-8`).
+pub fn array_spec(indices: &[usize]) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    let mut i = 0;
+    while i < indices.len() {
+        let start = indices[i];
+        let mut end = start;
+        while i + 1 < indices.len() && indices[i + 1] == end + 1 {
+            i += 1;
+            end += 1;
+        }
+        parts.push(if end == start {
+            start.to_string()
+        } else {
+            format!("{start}-{end}")
+        });
+        i += 1;
+    }
+    parts.join(",")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn array_lists_compress_runs_into_ranges() {
+        assert_eq!(array_spec(&[]), "");
+        assert_eq!(array_spec(&[4]), "4");
+        assert_eq!(array_spec(&[0, 1, 2, 3, 5, 7, 8]), "0-3,5,7-8");
+        assert_eq!(array_spec(&[1, 3]), "1,3");
+    }
+
+    #[test]
+    fn records_keep_non_finite_numbers_as_null_and_read_back_equal() {
+        let metrics = ViewMetrics {
+            psnr_right: 30.5,
+            ssim_right: 0.9,
+            jnb_right: f64::NAN,
+            psnr_full: 29.25,
+            ssim_full: f64::NAN,
+            jnb_full: 1.5,
+            psnr_foreground: 20.0,
+            psnr_foreground_right: 21.0,
+        };
+        let stored = Metrics::from(metrics);
+        let text = serde_json::to_string(&stored).unwrap();
+        assert!(text.contains("\"ssim_full\":null"), "{text}");
+        let back: Metrics = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, stored);
+        let loaded = ViewMetrics::from(back);
+        assert!(loaded.ssim_full.is_nan() && loaded.jnb_right.is_nan());
+        assert_eq!(loaded.psnr_full, 29.25);
+    }
+
+    #[test]
+    fn fnv1a_is_the_reference_hash() {
+        // Reference values of FNV-1a 64.
+        assert_eq!(fnv1a(b""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(fnv1a(b"a"), 0xaf63_dc4c_8601_ec8c);
+    }
+}
