@@ -58,12 +58,19 @@ $sudo munged --force --key-file="$work/munge.key" --socket="$work/munge.sock" \
     skip "munged does not start"
 pids+=("$($sudo cat "$work/munged.pid")")
 
-# Two free TCP ports for slurmctld and slurmd (other checks may run a Slurm at the same time).
-read -r ctld_port slurmd_port < <(python3 -c '
-import socket
-s = [socket.socket() for _ in range(2)]
-for x in s: x.bind(("127.0.0.1", 0))
-print(*[x.getsockname()[1] for x in s])')
+# Two free TCP ports for slurmctld and slurmd (other checks may run a Slurm at the same time):
+# random ones nothing answers on.
+free_port() {
+    local port
+    while :; do
+        port=$((20000 + RANDOM % 20000))
+        [ "$port" != "${1:-}" ] || continue
+        (exec 3<>"/dev/tcp/127.0.0.1/$port") 2>/dev/null || break
+    done
+    echo "$port"
+}
+ctld_port=$(free_port)
+slurmd_port=$(free_port "$ctld_port")
 host=$(hostname -s)
 cpus=$(nproc)
 memory=$(awk '/MemTotal/ { print int($2 / 1024 * 0.9) }' /proc/meminfo)
@@ -113,7 +120,11 @@ echo "slurm: node $host ($cpus CPUs, $memory MB) idle in partition ci (user $use
 # The sweep as a job array, then collected.
 "$binary" sweep slurm "$description" --out "$work/cluster" --partition ci --cpus-per-task 1 \
     --time 00:10:00 --no-submit
-timeout 600 sbatch --wait "$work/cluster/sweep.sbatch"
+timeout 600 sbatch --wait "$work/cluster/sweep.sbatch" || {
+    echo "slurm: FAILED: the job array did not finish cleanly; its logs:" >&2
+    tail -n 20 "$work"/cluster/tasks/*/log.txt "$work"/cluster/slurm/*.out >&2 || true
+    exit 1
+}
 "$binary" sweep collect "$description" --out "$work/cluster" >/dev/null
 # The same sweep on this machine.
 "$binary" sweep run "$description" --out "$work/local" --jobs 2 --threads 2 >/dev/null
