@@ -402,6 +402,7 @@ fn submit(description: &Path, out: &Path, resources: &Resources, no_submit: bool
         absolute(description)?,
         absolute(out)?,
     );
+    slurm::check_output_folder(&out_abs)?;
     let array = array_spec(&pending);
     let script_path = out.join("sweep.sbatch");
     let text = slurm::script(&exe, &description_abs, &out_abs, &array, resources);

@@ -67,6 +67,18 @@ fn check_time(time: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Check that the output folder can stand in an `#SBATCH --output` line: Slurm splits those at
+/// whitespace and reads `%` as a file-name pattern.
+pub fn check_output_folder(out: &Path) -> Result<(), String> {
+    let text = out.display().to_string();
+    match text.chars().find(|c| c.is_whitespace() || *c == '%') {
+        Some(c) => Err(format!(
+            "--out: {text}: Slurm's #SBATCH lines cannot hold a path with {c:?}; choose another folder"
+        )),
+        None => Ok(()),
+    }
+}
+
 /// `text` as one shell word (single quotes).
 fn quoted(text: &str) -> String {
     format!("'{}'", text.replace('\'', r"'\''"))
@@ -156,6 +168,18 @@ mod tests {
         ] {
             let error = check(&bad).unwrap_err();
             assert!(error.starts_with(flag), "{bad:?}: {error}");
+        }
+    }
+
+    #[test]
+    fn output_folders_with_spaces_or_patterns_are_refused() {
+        assert_eq!(
+            check_output_folder(Path::new("/shared/runs/sweep-1")),
+            Ok(())
+        );
+        for bad in ["/shared/my runs", "/shared/100%", "/shared/a\tb"] {
+            let error = check_output_folder(Path::new(bad)).unwrap_err();
+            assert!(error.starts_with("--out: "), "{error}");
         }
     }
 
