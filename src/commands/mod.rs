@@ -23,6 +23,7 @@ use orbit_nerf_host::train::{
     read_config, restore_checkpoint,
 };
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 pub type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 pub type CliResult = Fallible<()>;
@@ -108,6 +109,15 @@ fn choose_box(
         scene_box::choose_scene_box(dataset, stated, train_idx)?
     );
     Ok(())
+}
+
+/// Raised by Ctrl-C / SIGTERM once [`stop_on_signal`] is installed: `train` stops after the
+/// current step and `stream` after the current frame, and both checkpoint.
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// Make Ctrl-C and SIGTERM raise [`STOP`] instead of ending the process.
+fn stop_on_signal() -> CliResult {
+    Ok(ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?)
 }
 
 /// Default steps fitting a held-out view's appearance embedding.

@@ -2,7 +2,7 @@
 //! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
-use super::{FIT_STEPS, Fallible, SceneBox, bar_style, parse_scene_box};
+use super::{FIT_STEPS, Fallible, STOP, SceneBox, bar_style, parse_scene_box, stop_on_signal};
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::ablation::APPEARANCE_POSE;
@@ -17,7 +17,6 @@ use orbit_nerf_host::train::{self, RayonExecutor};
 use orbit_nerf_host::{memory, values};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 #[derive(clap::Args, Debug, Clone)]
@@ -138,11 +137,8 @@ impl From<Policy> for Replacement {
     }
 }
 
-/// Raised by Ctrl-C / SIGTERM: the stream stops after the current frame and checkpoints.
-static STOP: AtomicBool = AtomicBool::new(false);
-
 pub fn run(args: &StreamArgs) -> Fallible<()> {
-    ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?;
+    stop_on_signal()?;
     let width = Some(args.size as u32);
     if let Some(name) = &args.scene {
         let mut scene = Scene::load(name)?;
@@ -194,7 +190,7 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         let (checkpoint, config, state) = stream::resume(&checkpoint_path, source)?;
         (config, state, Some(checkpoint))
     } else {
-        stream::check_fresh_start(&checkpoint_path, args.force)?;
+        orbit_nerf_host::io::check_fresh_checkpoint(&checkpoint_path, args.force, "stream")?;
         let mut info = source.info().clone();
         info.frames = info.frames.or(args.max_frames);
         let base = model_config(args)?;

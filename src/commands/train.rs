@@ -1,15 +1,19 @@
 //! `orbit-nerf train`: train a field on a dataset, write the checkpoint, score the held-out
-//! views.
+//! views. A run stopped by Ctrl-C, SIGTERM or `--stop-after` checkpoints and continues with
+//! `--resume` to the same bytes as a run that was never stopped.
 
 use super::{
-    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, bar_style, choose_box, model_config,
-    open_dataset, print_scores, with_trainer,
+    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, STOP, bar_style, choose_box,
+    model_config, open_dataset, print_scores, stop_on_signal, with_trainer,
 };
 use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Executor, Trainer};
+use orbit_nerf_host::dataset::Frame;
+use orbit_nerf_host::io;
 use orbit_nerf_host::train::{self, RayonExecutor};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 /// The training progress bar (the demo draws the same).
@@ -24,19 +28,49 @@ pub struct TrainArgs {
     /// Output folder: checkpoint.onrf, config.toml, renders/.
     #[arg(long, default_value = "runs/train")]
     out: PathBuf,
+    /// Continue the run saved in OUT/checkpoint.onrf with its own config (give the same
+    /// --data, --size, --holdout and masks); ends with the bytes of a run never stopped.
+    #[arg(long, conflicts_with_all = ["force", "config", "steps", "seed", "embedding_dim", "pose_correction", "scene_box"])]
+    resume: bool,
+    /// Start a fresh run even though OUT holds an earlier run's checkpoint, replacing it.
+    #[arg(long)]
+    force: bool,
+    /// Stop (and checkpoint) once the run has taken this many steps, as Ctrl-C would;
+    /// continue with --resume.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    stop_after: Option<u32>,
 }
 
 pub fn run(args: &TrainArgs) -> CliResult {
-    orbit_nerf_host::io::check_output_folder(&args.out)?;
+    let checkpoint_path = args.out.join("checkpoint.onrf");
+    if args.resume {
+        io::check_output_folder(&args.out)?;
+        if !checkpoint_path.is_file() {
+            return Err(format!(
+                "{}: no checkpoint to resume (start a run without --resume)",
+                checkpoint_path.display()
+            )
+            .into());
+        }
+    } else {
+        io::check_fresh_checkpoint(&checkpoint_path, args.force, "training run")?;
+    }
+    stop_on_signal()?;
     let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;
-    let base = model_config(&args.model)?;
-    choose_box(
-        &mut dataset,
-        args.model.scene_box,
-        args.model.config.as_deref(),
-        &train_idx,
-    )?;
-    let config = train::fit_config(&base, &dataset, train_idx.len());
+    let (config, restored) = if args.resume {
+        let checkpoint = orbit_nerf_host::checkpoint::load(&checkpoint_path)?;
+        let config = train::checkpoint_config(&checkpoint_path, &checkpoint)?;
+        (config, Some(checkpoint))
+    } else {
+        let base = model_config(&args.model)?;
+        choose_box(
+            &mut dataset,
+            args.model.scene_box,
+            args.model.config.as_deref(),
+            &train_idx,
+        )?;
+        (train::fit_config(&base, &dataset, train_idx.len()), None)
+    };
     let executor = RayonExecutor::new(args.model.threads)?;
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
     println!(
@@ -47,14 +81,35 @@ pub fn run(args: &TrainArgs) -> CliResult {
         config.steps,
         args.model.threads
     );
-    with_trainer(config, &frames, |trainer| {
-        let summary = train_loop(trainer, &executor)?;
+    // A resumed run's frames come from its checkpoint (and are checked against the data).
+    let fresh_frames: &[&Frame] = if restored.is_some() { &[] } else { &frames };
+    with_trainer(config, fresh_frames, |trainer| {
+        if let Some(checkpoint) = &restored {
+            train::restore_checkpoint(&checkpoint_path, checkpoint, trainer)?;
+            check_same_frames(&checkpoint_path, trainer, &frames)?;
+            println!(
+                "resuming {} at step {} of {}",
+                checkpoint_path.display(),
+                trainer.state().step,
+                config.steps
+            );
+        }
+        let summary = train_loop(trainer, &executor, args.stop_after)?;
         print_summary(&summary);
-        train::save_checkpoint(&args.out.join("checkpoint.onrf"), trainer)?;
-        orbit_nerf_host::io::write_atomic(
+        train::save_checkpoint(&checkpoint_path, trainer)?;
+        io::write_atomic(
             &args.out.join("config.toml"),
             train::config_to_toml(&config).as_bytes(),
         )?;
+        if trainer.state().step < config.steps {
+            println!(
+                "stopped at step {} of {}; checkpoint {} (continue with --resume)",
+                trainer.state().step,
+                config.steps,
+                checkpoint_path.display()
+            );
+            return Ok(());
+        }
         let scores = train::evaluate(
             trainer,
             &executor,
@@ -69,6 +124,37 @@ pub fn run(args: &TrainArgs) -> CliResult {
     })
 }
 
+/// A resumed run trains on the frames its checkpoint holds: refuse data whose training views
+/// are not those (another folder, size, hold-out or masking).
+fn check_same_frames(checkpoint: &Path, trainer: &Trainer<'_>, frames: &[&Frame]) -> CliResult {
+    let store = trainer.frames();
+    let differs = |i: usize| {
+        store
+            .occupied_slot(i)
+            .and_then(|slot| store.pixels(slot))
+            .is_none_or(|pixels| pixels != frames[i].pixels.as_slice())
+    };
+    if store.len() != frames.len() {
+        return Err(format!(
+            "{}: the run trained on {} views, the data gives {}; resume with the run's --data, --size, --holdout and masks",
+            checkpoint.display(),
+            store.len(),
+            frames.len()
+        )
+        .into());
+    }
+    if let Some(i) = (0..frames.len()).find(|&i| differs(i)) {
+        return Err(format!(
+            "{}: training view {} ({}) is not the one the run trained on; resume with the run's --data, --size, --holdout and masks",
+            checkpoint.display(),
+            i,
+            frames[i].name
+        )
+        .into());
+    }
+    Ok(())
+}
+
 struct TrainSummary {
     seconds: f64,
     rays: u64,
@@ -77,9 +163,17 @@ struct TrainSummary {
     skipped: u32,
 }
 
-/// Run the configured number of steps with a progress bar (steps/s, loss, running PSNR).
-fn train_loop<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Fallible<TrainSummary> {
-    let steps = trainer.config().steps - trainer.state().step.min(trainer.config().steps);
+/// Run the remaining steps with a progress bar (steps/s, loss, running PSNR), stopping early
+/// at step `stop_after` or after the step during which Ctrl-C / SIGTERM arrived.
+fn train_loop<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    stop_after: Option<u32>,
+) -> Fallible<TrainSummary> {
+    let end = stop_after.map_or(trainer.config().steps, |stop| {
+        stop.min(trainer.config().steps)
+    });
+    let steps = end - trainer.state().step.min(end);
     let bar = ProgressBar::new(steps as u64).with_style(bar_style(TRAIN_BAR)?);
     let start = Instant::now();
     let mut summary = TrainSummary {
@@ -107,6 +201,9 @@ fn train_loop<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Fallible<
             ));
         }
         bar.inc(1);
+        if STOP.load(Ordering::SeqCst) {
+            break;
+        }
     }
     bar.finish_and_clear();
     summary.seconds = start.elapsed().as_secs_f64();

@@ -517,27 +517,6 @@ pub fn resume<S: FrameSource + ?Sized>(
     Ok((checkpoint, config, state))
 }
 
-/// Before a fresh stream: refuse to replace the checkpoint of an earlier stream at `path`
-/// unless `replace` (the user asked for it); continuing it is `resume`'s job.
-pub fn check_fresh_start(path: &Path, replace: bool) -> Result<()> {
-    if let Some(out) = path.parent() {
-        crate::io::check_output_folder(out)?;
-    }
-    if path.exists() && !replace {
-        return Err(HostError::invalid(
-            path,
-            "holds the checkpoint of an earlier stream; continue it with --resume, or replace it with --force",
-        ));
-    }
-    if path.is_dir() {
-        return Err(HostError::invalid(
-            path,
-            "is a folder; the stream's checkpoint cannot be written there",
-        ));
-    }
-    Ok(())
-}
-
 /// The anytime curve as CSV.
 pub fn curve_csv(curve: &[AnytimePoint]) -> String {
     let mut csv = String::from(
