@@ -9,8 +9,10 @@
 mod common;
 
 use common::{Scratch, orbit_nerf, output_text as text, root};
+use orbit_nerf_core::Config;
 use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::stream::{Arrival, FrameSource, WatchOptions, WatchedFolder};
+use orbit_nerf_host::train;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 use std::sync::atomic::AtomicBool;
@@ -36,9 +38,10 @@ fn path_str(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
-/// Every numeric flag value that is out of range, not finite or not a number is refused by
-/// the argument parser with an error naming the flag, before any work starts (so these need no
-/// data). `inf` is accepted only where it means "for ever" (tested below).
+/// Every numeric flag value (of `stream`, `simulate`, `train` and `eval`) that is out of range,
+/// not finite or not a number is refused by the argument parser with an error naming the flag,
+/// before any work starts (so these need no data). `inf` is accepted only where it means "for
+/// ever" (tested below).
 #[test]
 fn out_of_range_flag_values_are_refused_naming_the_flag() {
     let scratch = Scratch::new("flags");
@@ -79,22 +82,50 @@ fn out_of_range_flag_values_are_refused_naming_the_flag() {
         ("simulate", "--memory-limit", "-1G"),
         ("simulate", "--memory-limit", "99999999999T"),
         ("stream", "--memory-limit", "lots"),
+        ("train", "--size", "0"),
+        ("train", "--size", "-1"),
+        ("train", "--size", "70000"),
+        ("train", "--size", "inf"),
+        ("train", "--holdout", "0"),
+        ("train", "--holdout", "nan"),
+        ("train", "--steps", "0"),
+        ("train", "--steps", "-5"),
+        ("train", "--steps", "1e12"),
+        ("train", "--steps", "4294967295"),
+        ("train", "--seed", "-1"),
+        ("train", "--seed", "1e400"),
+        ("train", "--threads", "0"),
+        ("train", "--threads", "100000"),
+        ("train", "--embedding-dim", "129"),
+        ("train", "--embedding-dim", "-1"),
+        ("train", "--fit-steps", "-1"),
+        ("train", "--fit-steps", "1000000"),
+        ("train", "--memory-limit", "0"),
+        ("train", "--memory-limit", "inf"),
+        ("train", "--stop-after", "0"),
+        ("train", "--scene-box", "0,0,0,inf,1,1"),
+        ("train", "--scene-box", "1,1,1,0,0,0"),
+        ("eval", "--size", "0"),
+        ("eval", "--threads", "0"),
+        ("eval", "--fit-steps", "nan"),
+        ("eval", "--memory-limit", "-1G"),
     ];
     for &(command, flag, value) in cases {
         let case = format!("{command} {flag} {value}");
         // `--flag=value`, so that negative values reach the flag's own check.
         let flag_value = format!("{flag}={value}");
-        let args = [
-            command,
-            "--scene",
-            "synthetic",
-            "--out",
-            path_str(&out),
-            &flag_value,
-        ];
-        let result = orbit_nerf(&args).output().unwrap();
+        let source = match command {
+            "train" => ["--data", "no/such/dataset", "--out", path_str(&out)],
+            "eval" => ["--data", "no/such/dataset", "--checkpoint", "no/such.onrf"],
+            _ => ["--scene", "synthetic", "--out", path_str(&out)],
+        };
+        let result = orbit_nerf(&[command, &flag_value])
+            .args(source)
+            .output()
+            .unwrap();
         assert_clear_error(&case, &result, &[flag]);
         assert_eq!(result.status.code(), Some(2), "{case}: a usage error");
+        assert!(!text(&result).contains("no/such"), "{case}: read the data");
         assert!(!out.exists(), "{case}: created its output");
     }
 }
@@ -450,7 +481,7 @@ fn sizes_that_cannot_fit_fail_with_the_memory_plan() {
 #[test]
 fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
     use orbit_nerf_core::{MemoryPlan, Trainer};
-    use orbit_nerf_host::{checkpoint, train};
+    use orbit_nerf_host::checkpoint;
     let scratch = Scratch::new("nan-checkpoint");
     let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
     config.max_frames = 1;
@@ -479,12 +510,17 @@ fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
 fn small_training_run(scratch: &Scratch) -> (PathBuf, PathBuf) {
     let data = scratch.path("data");
     common::simulated_lightbox(&data, 12, 32);
-    let mut config =
-        orbit_nerf_host::train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    (data, small_config(scratch, "model.toml", |_| {}))
+}
+
+/// The tiny profile with 128 rays per step, changed by `edit`, written to `scratch/name`.
+fn small_config(scratch: &Scratch, name: &str, edit: impl FnOnce(&mut Config)) -> PathBuf {
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
     config.rays_per_batch = 128;
-    let model = scratch.path("model.toml");
-    std::fs::write(&model, orbit_nerf_host::train::config_to_toml(&config)).unwrap();
-    (data, model)
+    edit(&mut config);
+    let path = scratch.path(name);
+    std::fs::write(&path, train::config_to_toml(&config)).unwrap();
+    path
 }
 
 /// `train` on the small run of `small_training_run` for 40 steps into `out`, with `extra`.
@@ -608,6 +644,190 @@ fn sigterm_during_train_writes_a_checkpoint() {
     assert!(!printed.contains("PSNR"), "scored a stopped run: {printed}");
     let path = out.join("checkpoint.onrf");
     let saved = orbit_nerf_host::checkpoint::load(&path).unwrap();
-    let config = orbit_nerf_host::train::checkpoint_config(&path, &saved).unwrap();
+    let config = train::checkpoint_config(&path, &saved).unwrap();
     assert_eq!(config.steps, 1_000_000);
+}
+
+/// A config file's values are checked as the flags are, before the data is read: the error
+/// names the file and the field.
+#[test]
+fn out_of_range_config_file_values_are_refused_naming_the_file_and_field() {
+    let scratch = Scratch::new("config-values");
+    let tiny = std::fs::read_to_string(root().join("budgets/tiny.toml")).unwrap();
+    let cases = [
+        ("adam_eps = 1e-15", "adam_eps = nan", "adam_eps"),
+        ("adam_eps = 1e-15", "adam_eps = -1.0", "adam_eps"),
+        (
+            "learning_rate = 0.01",
+            "learning_rate = inf",
+            "learning_rate",
+        ),
+        (
+            "learning_rate = 0.01",
+            "learning_rate = 0.0",
+            "learning_rate",
+        ),
+        ("steps = 2000", "steps = 0", "steps"),
+        ("steps = 2000", "steps = -3", "steps"),
+        (
+            "rays_per_batch = 1024",
+            "rays_per_batch = 99999999999",
+            "rays_per_batch",
+        ),
+        (
+            "occupancy_threshold = 0.01",
+            "occupancy_threshold = -inf",
+            "occupancy_threshold",
+        ),
+        ("march_steps = 256", "march_steps = 0", "march_steps"),
+    ];
+    for (line, bad, field) in cases {
+        assert!(tiny.contains(line), "{line}");
+        let path = scratch.path(&format!("{field}.toml"));
+        std::fs::write(&path, tiny.replace(line, bad)).unwrap();
+        let result = orbit_nerf(&["train", "--data", "no/such/dataset", "--config"])
+            .arg(&path)
+            .arg("--out")
+            .arg(scratch.path("out"))
+            .output()
+            .unwrap();
+        assert_clear_error(bad, &result, &[path_str(&path), field]);
+        assert!(!text(&result).contains("no/such"), "{bad}: read the data");
+    }
+}
+
+/// Garbage with exit 0 no more: a run whose parameters go non-finite (a tiny `adam_eps`),
+/// one whose scene box no ray meets (0 samples per ray), one whose every frame is black
+/// and one that holds out every view end non-zero with the cause, and save no checkpoint.
+#[test]
+fn garbage_training_runs_fail_with_the_cause_and_save_nothing() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("garbage");
+    let (data, model) = small_training_run(&scratch);
+    let tiny_eps = small_config(&scratch, "eps.toml", |c| c.adam_eps = 1e-45);
+    let far_box = small_config(&scratch, "far.toml", |c| {
+        c.aabb_min = [100.0; 3];
+        c.aabb_max = [101.0; 3];
+    });
+    let black = scratch.path("black");
+    copy_dataset(&data, &black);
+    for entry in std::fs::read_dir(black.join("images")).unwrap() {
+        let path = entry.unwrap().path();
+        let (w, h) = image::image_dimensions(&path).unwrap();
+        image::RgbImage::new(w, h).save(&path).unwrap();
+    }
+    type Case<'a> = (&'a str, &'a Path, &'a Path, &'a [&'a str], &'a [&'a str]);
+    let cases: [Case; 4] = [
+        (
+            "tiny adam_eps",
+            &data,
+            &tiny_eps,
+            &[],
+            &["training diverged", "adam_eps"],
+        ),
+        (
+            "no ray in the box",
+            &data,
+            &far_box,
+            &[],
+            &["0 samples per ray"],
+        ),
+        (
+            "all-black frames",
+            &black,
+            &model,
+            &[],
+            &["training views is black"],
+        ),
+        (
+            "every view held out",
+            &data,
+            &model,
+            &["--holdout", "1"],
+            &["--holdout 1"],
+        ),
+    ];
+    for (case, data, config, extra, needles) in cases {
+        let out = scratch.path("out");
+        let result = train_small(data, config, &out, extra);
+        assert_clear_error(case, &result, needles);
+        assert!(!out.join("checkpoint.onrf").exists(), "{case}: saved");
+    }
+}
+
+/// Every step skipped (non-finite loss or gradients each time) is garbage too: the check
+/// every training command runs refuses the model, naming the cause.
+#[test]
+fn a_run_whose_every_step_was_skipped_is_refused() {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    use orbit_nerf_host::train::TrainingTally;
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.max_frames = 1;
+    config.max_pixels_per_frame = 64;
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let tally = TrainingTally {
+        steps: 5,
+        samples: 100,
+    };
+    assert!(train::check_trained(Path::new("run"), &trainer, tally).is_ok());
+    // The state of a run of 5 steps, all skipped: step, updates, skipped, refreshes.
+    let state: Vec<u8> = [5u32, 0, 5, 0]
+        .iter()
+        .flat_map(|v| v.to_ne_bytes())
+        .collect();
+    trainer.restore_section("state", &state).unwrap();
+    let error = train::check_trained(Path::new("run"), &trainer, tally)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("every one of the 5 steps was skipped"),
+        "{error}"
+    );
+}
+
+/// Copy the dataset folder `from` (files and one level of folders) to `to`.
+fn copy_dataset(from: &Path, to: &Path) {
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        let target = to.join(path.file_name().unwrap());
+        if path.is_dir() {
+            copy_dataset(&path, &target);
+        } else {
+            std::fs::create_dir_all(to).unwrap();
+            std::fs::copy(&path, &target).unwrap();
+        }
+    }
+}
+
+/// `train` and `eval` check the model's arena against `--memory-limit` before allocating it,
+/// failing with the plan's numbers.
+#[test]
+fn train_and_eval_over_the_memory_limit_fail_with_the_plan() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("train-memory");
+    let (data, model) = small_training_run(&scratch);
+    let out = scratch.path("out");
+    let expected = [
+        "needs",
+        "frame store",
+        "memory limit of 1.0 MiB",
+        "--memory-limit",
+    ];
+    let result = train_small(&data, &model, &out, &["--memory-limit", "1M"]);
+    assert_clear_error("train --memory-limit 1M", &result, &expected);
+    assert!(!out.join("checkpoint.onrf").exists(), "saved");
+    let result = train_small(&data, &model, &out, &["--stop-after", "1"]);
+    assert!(result.status.success(), "{}", text(&result));
+    let checkpoint = out.join("checkpoint.onrf");
+    let result = orbit_nerf(&["eval", "--data", path_str(&data), "--size", "32"])
+        .args(["--memory-limit", "1M", "--checkpoint"])
+        .arg(&checkpoint)
+        .output()
+        .unwrap();
+    assert_clear_error("eval --memory-limit 1M", &result, &expected);
 }

@@ -64,7 +64,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     );
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
-        with_trainer(config, &frames, |trainer| {
+        with_trainer(config, None, &frames, |trainer| {
             for _ in 0..args.warmup {
                 trainer.step(&executor)?;
             }

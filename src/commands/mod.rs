@@ -15,13 +15,13 @@ use indicatif::ProgressStyle;
 use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset, Frame};
-use orbit_nerf_host::formats;
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box::{self, StatedBox};
 use orbit_nerf_host::train::{
     RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
     read_config, restore_checkpoint,
 };
+use orbit_nerf_host::{formats, memory, values};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -35,11 +35,11 @@ struct DataArgs {
     /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT.
     #[arg(long)]
     data: PathBuf,
-    /// Resize images so the longer side has this many pixels.
-    #[arg(long, default_value_t = 100)]
+    /// Resize images so the longer side has this many pixels (1 to 65535).
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=65_535))]
     size: u32,
-    /// Every N-th view (0, N, 2N, ...) is held out for evaluation.
-    #[arg(long, default_value_t = 8)]
+    /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view).
+    #[arg(long, default_value_t = 8, value_parser = |text: &str| values::count_in(text, 1..=1_000_000))]
     holdout: usize,
     /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
     /// get the background colour for training and scoring (as the paper removes it).
@@ -52,24 +52,28 @@ struct ModelArgs {
     /// Full model and training config (TOML, every field; see budgets/).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Training steps (overrides the config).
-    #[arg(long)]
+    /// Training steps, 1 to 100 million (overrides the config).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_STEPS))]
     steps: Option<u32>,
     /// Random seed (overrides the config).
     #[arg(long)]
     seed: Option<u64>,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads, 1 to 1024 (results do not depend on it).
+    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
     threads: usize,
-    /// Appearance embedding size per frame (overrides the config; 0 disables it).
-    #[arg(long)]
+    /// Appearance embedding size per frame, 0 to 128 (overrides the config; 0 disables it).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(0..=MAX_EMBEDDING_DIM))]
     embedding_dim: Option<u16>,
     /// Learn a pose correction per frame (overrides the config).
     #[arg(long)]
     pose_correction: Option<bool>,
-    /// Evaluation: steps fitting a held-out view's embedding on its left half.
-    #[arg(long, default_value_t = FIT_STEPS)]
+    /// Evaluation: steps fitting a held-out view's embedding on its left half (0 to 100000).
+    #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]
     fit_steps: u32,
+    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
+    /// machine's available memory. Checked before anything large is allocated.
+    #[arg(long, value_parser = values::byte_size)]
+    memory_limit: Option<u64>,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax in world units (wins over a config
     /// file's box, truth.json's and the box found from the data).
     #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
@@ -120,6 +124,15 @@ fn stop_on_signal() -> CliResult {
     Ok(ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?)
 }
 
+/// Most training steps a flag accepts.
+const MAX_STEPS: i64 = 100_000_000;
+/// Most worker threads a flag accepts.
+const MAX_THREADS: usize = 1024;
+/// Largest appearance embedding (the core's limit).
+const MAX_EMBEDDING_DIM: i64 = 128;
+/// Most steps fitting a held-out view's embedding.
+const MAX_FIT_STEPS: i64 = 100_000;
+
 /// Default steps fitting a held-out view's appearance embedding.
 const FIT_STEPS: u32 = 50;
 
@@ -165,13 +178,20 @@ fn model_config(model: &ModelArgs) -> Fallible<Config> {
     Ok(config)
 }
 
-/// A trainer over a fresh arena, with the training frames loaded.
+/// A trainer over a fresh arena (checked against `memory_limit`, or a share of the
+/// machine's memory, before it is allocated), with the training frames loaded.
 fn with_trainer<R>(
     config: Config,
+    memory_limit: Option<u64>,
     frames: &[&Frame],
     f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>,
 ) -> Fallible<R> {
     let plan = MemoryPlan::new(&config);
+    memory::check_arena(
+        Path::new("the model"),
+        &plan,
+        memory::limit_or_default(memory_limit),
+    )?;
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
     load_frames(&mut trainer, frames.iter().copied())?;
@@ -217,6 +237,18 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
     mean
 }
 
+/// Check the arena the checkpoint at `path` needs against `memory_limit` (default: a share of
+/// the machine's memory) before its data is read.
+fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> CliResult {
+    let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
+    let plan = MemoryPlan::new(&checkpoint_config(path, &checkpoint)?);
+    Ok(memory::check_arena(
+        path,
+        &plan,
+        memory::limit_or_default(memory_limit),
+    )?)
+}
+
 /// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
 /// fitting each view's embedding for `fit_steps`; renders go to `renders` when given.
 fn evaluate_checkpoint(
@@ -230,7 +262,7 @@ fn evaluate_checkpoint(
     let executor = RayonExecutor::new(threads)?;
     let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
     let config = checkpoint_config(path, &checkpoint)?;
-    with_trainer(config, &[], |trainer| {
+    with_trainer(config, None, &[], |trainer| {
         restore_checkpoint(path, &checkpoint, trainer)?;
         Ok(evaluate(
             trainer, &executor, dataset, views, fit_steps, renders,

@@ -56,13 +56,27 @@ pub fn run(args: &TrainArgs) -> CliResult {
         io::check_fresh_checkpoint(&checkpoint_path, args.force, "training run")?;
     }
     stop_on_signal()?;
-    let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;
-    let (config, restored) = if args.resume {
-        let checkpoint = orbit_nerf_host::checkpoint::load(&checkpoint_path)?;
-        let config = train::checkpoint_config(&checkpoint_path, &checkpoint)?;
-        (config, Some(checkpoint))
+    // The config (flags and file) is checked before the data is read.
+    let base = if args.resume {
+        None
     } else {
-        let base = model_config(&args.model)?;
+        Some(model_config(&args.model)?)
+    };
+    let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;
+    if train_idx.is_empty() {
+        return Err(format!(
+            "{}: no training view: --holdout {} holds out every one of its {} views",
+            dataset.source.display(),
+            args.data.holdout,
+            dataset.frames.len()
+        )
+        .into());
+    }
+    train::check_frames_have_content(
+        &dataset.source,
+        train_idx.iter().map(|&i| &dataset.frames[i]),
+    )?;
+    let (config, restored) = if let Some(base) = base {
         choose_box(
             &mut dataset,
             args.model.scene_box,
@@ -70,6 +84,10 @@ pub fn run(args: &TrainArgs) -> CliResult {
             &train_idx,
         )?;
         (train::fit_config(&base, &dataset, train_idx.len()), None)
+    } else {
+        let checkpoint = orbit_nerf_host::checkpoint::load(&checkpoint_path)?;
+        let config = train::checkpoint_config(&checkpoint_path, &checkpoint)?;
+        (config, Some(checkpoint))
     };
     let executor = RayonExecutor::new(args.model.threads)?;
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
@@ -83,7 +101,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
     );
     // A resumed run's frames come from its checkpoint (and are checked against the data).
     let fresh_frames: &[&Frame] = if restored.is_some() { &[] } else { &frames };
-    with_trainer(config, fresh_frames, |trainer| {
+    with_trainer(config, args.model.memory_limit, fresh_frames, |trainer| {
         if let Some(checkpoint) = &restored {
             train::restore_checkpoint(&checkpoint_path, checkpoint, trainer)?;
             check_same_frames(&checkpoint_path, trainer, &frames)?;
@@ -96,6 +114,11 @@ pub fn run(args: &TrainArgs) -> CliResult {
         }
         let summary = train_loop(trainer, &executor, args.stop_after)?;
         print_summary(&summary);
+        let tally = train::TrainingTally {
+            steps: summary.steps,
+            samples: summary.samples,
+        };
+        train::check_trained(&args.out, trainer, tally)?;
         train::save_checkpoint(&checkpoint_path, trainer)?;
         io::write_atomic(
             &args.out.join("config.toml"),
@@ -156,6 +179,7 @@ fn check_same_frames(checkpoint: &Path, trainer: &Trainer<'_>, frames: &[&Frame]
 }
 
 struct TrainSummary {
+    steps: u64,
     seconds: f64,
     rays: u64,
     samples: u64,
@@ -177,6 +201,7 @@ fn train_loop<E: Executor>(
     let bar = ProgressBar::new(steps as u64).with_style(bar_style(TRAIN_BAR)?);
     let start = Instant::now();
     let mut summary = TrainSummary {
+        steps: 0,
         seconds: 0.0,
         rays: 0,
         samples: 0,
@@ -186,6 +211,7 @@ fn train_loop<E: Executor>(
     let mut running = RunningPsnr::default();
     for i in 0..steps {
         let report = trainer.step(executor)?;
+        summary.steps += 1;
         summary.rays += report.rays as u64;
         summary.samples += report.samples as u64;
         summary.marched += report.samples_marched as u64;
