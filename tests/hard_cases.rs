@@ -820,6 +820,10 @@ fn train_and_eval_over_the_memory_limit_fail_with_the_plan() {
     ];
     let result = train_small(&data, &model, &out, &["--memory-limit", "1M"]);
     assert_clear_error("train --memory-limit 1M", &result, &expected);
+    // The images (12 of 32 x 32 px) are checked from their headers before they are read.
+    let result = train_small(&data, &model, &out, &["--memory-limit", "16K"]);
+    let images = ["needs", "images loaded", "memory limit of 16.0 KiB"];
+    assert_clear_error("train --memory-limit 16K", &result, &images);
     assert!(!out.join("checkpoint.onrf").exists(), "saved");
     let result = train_small(&data, &model, &out, &["--stop-after", "1"]);
     assert!(result.status.success(), "{}", text(&result));

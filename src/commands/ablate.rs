@@ -23,7 +23,8 @@ pub struct AblateArgs {
     /// Frames to simulate.
     #[arg(long, default_value_t = 400)]
     pub frames: u32,
-    /// Image size in pixels.
+    /// Image size in pixels: the simulated frames' side, or the longer side a --data set's
+    /// frames are resized to (never upsampled).
     #[arg(long, default_value_t = 128)]
     pub size: u16,
     /// Training steps of every model (the same budget for all; the default config's).
@@ -107,7 +108,7 @@ fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Po
     let set = speedplus::load(
         path,
         &LoadOptions {
-            width: Some(size as u32),
+            max_side: Some(size as u32),
             domain: None,
         },
     )?;

@@ -2,7 +2,7 @@
 
 use super::{
     CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, MAX_THREADS, check_checkpoint_memory,
-    evaluate_checkpoint, open_dataset, print_scores,
+    check_dataset_memory, evaluate_checkpoint, open_dataset, print_scores,
 };
 use clap::Args;
 use orbit_nerf_host::values;
@@ -32,6 +32,7 @@ pub struct EvalArgs {
 
 pub fn run(args: &EvalArgs) -> CliResult {
     check_checkpoint_memory(&args.checkpoint, args.memory_limit)?;
+    check_dataset_memory(&args.data, args.memory_limit)?;
     let (dataset, _, test_idx) = open_dataset(&args.data)?;
     let scores = evaluate_checkpoint(
         &args.checkpoint,

@@ -35,7 +35,8 @@ struct DataArgs {
     /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT.
     #[arg(long)]
     data: PathBuf,
-    /// Resize images so the longer side has this many pixels (1 to 65535).
+    /// Resize images so the longer side has at most this many pixels, 1 to 65535 (smaller
+    /// images keep their size: never upsampled), for every format.
     #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=65_535))]
     size: u32,
     /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view).
@@ -139,6 +140,16 @@ const FIT_STEPS: u32 = 50;
 /// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (the loader
 /// sets that itself).
 const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
+
+/// Check the memory the dataset's images will take (from their headers) against
+/// `memory_limit` (default: a share of the machine's memory) before they are read.
+fn check_dataset_memory(data: &DataArgs, memory_limit: Option<u64>) -> CliResult {
+    Ok(memory::check_plan(
+        &data.data,
+        &memory::dataset_parts(&data.data, Some(data.size)),
+        memory::limit_or_default(memory_limit),
+    )?)
+}
 
 fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
     let mut dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;

@@ -35,8 +35,9 @@ pub struct StreamArgs {
     /// Frames to simulate (--scene).
     #[arg(long, default_value_t = 120, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
-    /// Image size in pixels (simulated size, or the width dataset frames are resized to); at
-    /// least 22, so that each half of a held-out view is wide enough for SSIM's 11x11 window.
+    /// Image size in pixels: the simulated frames' longer side, or the longer side dataset
+    /// frames are resized to (never upsampled); at least 22, so that each half of a held-out
+    /// view is wide enough for SSIM's 11x11 window.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u16).range(22..))]
     pub size: u16,
     /// Frame slots of the core's store.
@@ -139,7 +140,7 @@ impl From<Policy> for Replacement {
 
 pub fn run(args: &StreamArgs) -> Fallible<()> {
     stop_on_signal()?;
-    let width = Some(args.size as u32);
+    let max_side = Some(args.size as u32);
     if let Some(name) = &args.scene {
         let mut scene = Scene::load(name)?;
         scene.spec.frames = args.frames;
@@ -147,14 +148,14 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
         let mut source = SimulatorSource::new(&scene)?;
         stream_from(args, &mut source)
     } else if let Some(dir) = &args.data {
-        stream_from(args, &mut DatasetSource::open(dir, width, args.rate)?)
+        stream_from(args, &mut DatasetSource::open(dir, max_side, args.rate)?)
     } else if let Some(dir) = &args.watch {
         let options = WatchOptions {
             poll: Duration::from_millis(args.poll_ms),
             grace: Duration::from_millis(args.grace_ms),
             idle_timeout: args.idle_timeout.0,
         };
-        stream_from(args, &mut WatchedFolder::open(dir, width, options)?)
+        stream_from(args, &mut WatchedFolder::open(dir, max_side, options)?)
     } else {
         Err("give a source: --scene, --data or --watch".into())
     }

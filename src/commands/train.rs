@@ -3,8 +3,8 @@
 //! `--resume` to the same bytes as a run that was never stopped.
 
 use super::{
-    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, STOP, bar_style, choose_box,
-    model_config, open_dataset, print_scores, stop_on_signal, with_trainer,
+    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, STOP, bar_style, check_dataset_memory,
+    choose_box, model_config, open_dataset, print_scores, stop_on_signal, with_trainer,
 };
 use clap::Args;
 use indicatif::ProgressBar;
@@ -62,6 +62,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
     } else {
         Some(model_config(&args.model)?)
     };
+    check_dataset_memory(&args.data, args.model.memory_limit)?;
     let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;
     if train_idx.is_empty() {
         return Err(format!(
