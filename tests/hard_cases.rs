@@ -835,3 +835,75 @@ fn train_and_eval_over_the_memory_limit_fail_with_the_plan() {
         .unwrap();
     assert_clear_error("eval --memory-limit 1M", &result, &expected);
 }
+
+/// The figures a printed line of `print_scores` shows, as the JSON values they came from
+/// would print: `(index, [PSNR, right, fg, SSIM, JNB])` per view line.
+fn printed_view_lines(printed: &str) -> Vec<(usize, Vec<String>)> {
+    printed
+        .lines()
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let index = fields.first()?.parse().ok()?;
+            (fields.len() == 8)
+                .then(|| (index, fields[1..6].iter().map(|f| f.to_string()).collect()))
+        })
+        .collect()
+}
+
+/// A JSON number as `print_scores` prints it with `decimals` (null: a NaN, printed `NaN`).
+fn as_printed(value: &serde_json::Value, decimals: usize) -> String {
+    value
+        .as_f64()
+        .map_or("NaN".to_owned(), |v| format!("{v:.decimals$}"))
+}
+
+/// `train` and `eval` write `metrics.json` (issue 12) holding the figures they print: each
+/// view's PSNR (whole, right half, foreground), SSIM and JNB, and the mean.
+#[test]
+fn train_and_eval_write_metrics_json_with_the_printed_figures() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("metrics-json");
+    let (data, model) = small_training_run(&scratch);
+    let out = scratch.path("out");
+    let trained = train_small(&data, &model, &out, &[]);
+    let evaluated = orbit_nerf(&["eval", "--data", path_str(&data), "--size", "32"])
+        .args(["--fit-steps", "0", "--checkpoint"])
+        .arg(out.join("checkpoint.onrf"))
+        .arg("--metrics")
+        .arg(scratch.path("eval"))
+        .output()
+        .unwrap();
+    for (command, result, dir) in [
+        ("train", trained, out.clone()),
+        ("eval", evaluated, scratch.path("eval")),
+    ] {
+        let printed = text(&result);
+        assert!(result.status.success(), "{printed}");
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(json["command"], command);
+        let model = &json["models"][0];
+        let views = model["views"].as_array().unwrap();
+        let lines = printed_view_lines(&printed);
+        assert_eq!(lines.len(), views.len(), "{printed}");
+        assert_eq!(lines.len(), 2, "two held-out views: {printed}");
+        for ((index, figures), view) in lines.iter().zip(views) {
+            assert_eq!(view["index"], *index as u64);
+            let from_json = vec![
+                as_printed(&view["psnr_full"], 2),
+                as_printed(&view["psnr_right"], 2),
+                as_printed(&view["psnr_foreground"], 2),
+                as_printed(&view["ssim_full"], 4),
+                as_printed(&view["jnb_full"], 3),
+            ];
+            assert_eq!(figures, &from_json, "{command} view {index}");
+        }
+        let mean = format!(
+            "mean PSNR over 2 held-out views: {} dB",
+            as_printed(&model["mean"]["psnr_full"], 2)
+        );
+        assert!(printed.contains(&mean), "`{mean}` not in: {printed}");
+    }
+}

@@ -5,7 +5,7 @@ use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
-use crate::report::{ViewMetrics, score_view};
+use crate::report::{ViewFigures, ViewMetrics, score_view};
 use orbit_nerf_core::{Config, Executor, Trainer};
 use rayon::prelude::*;
 use std::path::Path;
@@ -301,6 +301,20 @@ pub struct ViewScore {
     pub seconds: f64,
     /// The rendering, RGB f32 in [0, 1].
     pub render: Vec<f32>,
+}
+
+/// The views' figures for `metrics.json`.
+pub fn view_figures(scores: &[ViewScore]) -> Vec<ViewFigures> {
+    scores
+        .iter()
+        .map(|s| ViewFigures {
+            index: s.index,
+            name: s.name.clone(),
+            metrics: s.metrics,
+            samples_per_ray: s.samples_per_ray as f64,
+            seconds: s.seconds,
+        })
+        .collect()
 }
 
 /// Evaluate held-out views as in the paper and K-Planes: with the field frozen, start a

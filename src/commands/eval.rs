@@ -5,7 +5,8 @@ use super::{
     check_dataset_memory, evaluate_checkpoint, open_dataset, print_scores,
 };
 use clap::Args;
-use orbit_nerf_host::values;
+use orbit_nerf_host::report::{Figures, ModelFigures};
+use orbit_nerf_host::{train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -18,6 +19,10 @@ pub struct EvalArgs {
     /// Write renders and ground truth of the held-out views here.
     #[arg(long)]
     renders: Option<PathBuf>,
+    /// Write the printed figures as JSON to METRICS/metrics.json (default: into the --renders
+    /// folder when one is given).
+    #[arg(long)]
+    metrics: Option<PathBuf>,
     /// Worker threads, 1 to 1024 (results do not depend on it).
     #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
     threads: usize,
@@ -31,6 +36,9 @@ pub struct EvalArgs {
 }
 
 pub fn run(args: &EvalArgs) -> CliResult {
+    for dir in [&args.metrics, &args.renders].into_iter().flatten() {
+        orbit_nerf_host::io::check_output_folder(dir)?;
+    }
     check_checkpoint_memory(&args.checkpoint, args.memory_limit)?;
     check_dataset_memory(&args.data, args.memory_limit)?;
     let (dataset, _, test_idx) = open_dataset(&args.data)?;
@@ -42,6 +50,16 @@ pub fn run(args: &EvalArgs) -> CliResult {
         args.fit_steps,
         args.renders.as_deref(),
     )?;
-    print_scores(&scores);
+    let mean = print_scores(&scores);
+    if let Some(dir) = args.metrics.as_ref().or(args.renders.as_ref()) {
+        let model = ModelFigures {
+            name: args.checkpoint.display().to_string(),
+            mean,
+            views: train::view_figures(&scores),
+            training: None,
+        };
+        Figures::new("eval", vec![model]).write(dir)?;
+        println!("metrics.json in {}", dir.display());
+    }
     Ok(())
 }

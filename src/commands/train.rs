@@ -11,6 +11,7 @@ use indicatif::ProgressBar;
 use orbit_nerf_core::{Executor, Trainer};
 use orbit_nerf_host::dataset::Frame;
 use orbit_nerf_host::io;
+use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures};
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -25,7 +26,7 @@ pub struct TrainArgs {
     data: DataArgs,
     #[command(flatten)]
     model: ModelArgs,
-    /// Output folder: checkpoint.onrf, config.toml, renders/.
+    /// Output folder: checkpoint.onrf, config.toml, metrics.json, renders/.
     #[arg(long, default_value = "runs/train")]
     out: PathBuf,
     /// Continue the run saved in OUT/checkpoint.onrf with its own config (give the same
@@ -142,8 +143,24 @@ pub fn run(args: &TrainArgs) -> CliResult {
             args.model.fit_steps,
             Some(&args.out.join("renders")),
         )?;
-        print_scores(&scores);
-        println!("checkpoint, config and renders in {}", args.out.display());
+        let mean = print_scores(&scores);
+        let state = trainer.state();
+        let model = ModelFigures {
+            name: "model".into(),
+            mean,
+            views: train::view_figures(&scores),
+            training: Some(TrainingFigures {
+                steps: state.step as u64,
+                steps_skipped: state.skipped as u64,
+                seconds: summary.seconds,
+                samples_per_ray: summary.samples as f64 / summary.rays.max(1) as f64,
+            }),
+        };
+        Figures::new("train", vec![model]).write(&args.out)?;
+        println!(
+            "checkpoint, config, metrics.json and renders in {}",
+            args.out.display()
+        );
         Ok(())
     })
 }

@@ -11,12 +11,14 @@
 //! `plotters` draws the plot geometry (grid, frame, ticks, series) with its bitmap backend only.
 
 mod canvas;
+mod figures;
 mod plot;
 mod poses;
 mod strip;
 mod tables;
 mod views;
 
+pub use figures::{FIGURES_SCHEMA, Figures, ModelFigures, TrainingFigures, ViewFigures};
 pub use plot::line_plot;
 pub use poses::{
     PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,
