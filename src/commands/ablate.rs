@@ -236,8 +236,13 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
         writeln!(text, "![view {index}]({name})")?;
     }
     orbit_nerf_host::io::write_atomic(&args.out.join("ablation.md"), text.as_bytes())?;
+    let models = results.iter().map(VariantResult::figures).collect();
+    report::Figures::new("ablate", models).write(&args.out)?;
     println!("{text}");
-    println!("report and pictures in {}", args.out.display());
+    println!(
+        "report, metrics.json and pictures in {}",
+        args.out.display()
+    );
     Ok(())
 }
 

@@ -110,7 +110,8 @@ pub fn run(args: &DemoArgs) -> CliResult {
         start.elapsed().as_secs_f64()
     )?;
     orbit_nerf_host::io::write_atomic(&args.out.join("report.md"), text.as_bytes())?;
+    report::Figures::new("demo", vec![result.figures()]).write(&args.out)?;
     println!("{text}");
-    println!("report and renders in {}", args.out.display());
+    println!("report, metrics.json and renders in {}", args.out.display());
     Ok(())
 }

@@ -6,7 +6,7 @@ use super::{FIT_STEPS, Fallible, STOP, SceneBox, bar_style, parse_scene_box, sto
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::ablation::APPEARANCE_POSE;
-use orbit_nerf_host::report::ViewMetrics;
+use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures, ViewMetrics};
 use orbit_nerf_host::scene_box::box_text;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
@@ -116,7 +116,7 @@ pub struct StreamArgs {
     /// Worker threads, 1 to 1024 (results do not depend on it).
     #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=1024))]
     pub threads: usize,
-    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md.
+    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md, metrics.json.
     #[arg(long, default_value = "runs/stream")]
     pub out: PathBuf,
 }
@@ -339,9 +339,10 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     };
     let summary = summary(&state, &trainer, seconds, offline.as_ref());
     orbit_nerf_host::io::write_atomic(&args.out.join("summary.md"), summary.as_bytes())?;
+    figures(&state, &trainer, seconds, offline.as_ref()).write(&args.out)?;
     print!("{summary}");
     println!(
-        "checkpoint, anytime.csv, anytime.png and summary.md in {}",
+        "checkpoint, anytime.csv, anytime.png, summary.md and metrics.json in {}",
         args.out.display()
     );
     Ok(())
@@ -363,6 +364,39 @@ fn offline(
         stream::offline_reference(source, state, config, steps, executor, &mut |_| bar.inc(1))?;
     bar.finish_and_clear();
     Ok((metrics, start.elapsed().as_secs_f64()))
+}
+
+/// The summary's models for `metrics.json`: the streamed model at its last held-out score,
+/// and the offline reference when there is one (no per-view figures: a stream keeps means).
+fn figures(
+    state: &StreamState,
+    trainer: &Trainer<'_>,
+    seconds: f64,
+    offline: Option<&(ViewMetrics, f64)>,
+) -> Figures {
+    let mut models = Vec::new();
+    if let Some(last) = state.curve.last() {
+        models.push(ModelFigures {
+            name: "streamed".into(),
+            mean: last.metrics(),
+            views: Vec::new(),
+            training: Some(TrainingFigures {
+                steps: trainer.state().step as u64,
+                steps_skipped: trainer.state().skipped as u64,
+                seconds,
+                samples_per_ray: f64::NAN,
+            }),
+        });
+    }
+    if let Some((metrics, _)) = offline {
+        models.push(ModelFigures {
+            name: "offline reference".into(),
+            mean: *metrics,
+            views: Vec::new(),
+            training: None,
+        });
+    }
+    Figures::new("stream", models)
 }
 
 fn summary(

@@ -77,6 +77,23 @@ pub struct AnytimePoint {
     pub rss_mib: f64,
 }
 
+impl AnytimePoint {
+    /// The point's held-out means as view metrics; what a point does not keep (JNB, the
+    /// right half's foreground PSNR) is NaN.
+    pub fn metrics(&self) -> ViewMetrics {
+        ViewMetrics {
+            psnr_right: self.psnr_right,
+            ssim_right: self.ssim_right,
+            jnb_right: f64::NAN,
+            psnr_full: self.psnr,
+            ssim_full: self.ssim,
+            jnb_full: f64::NAN,
+            psnr_foreground: self.psnr_foreground,
+            psnr_foreground_right: f64::NAN,
+        }
+    }
+}
+
 /// Everything about a stream beyond the trainer's state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamState {
