@@ -54,8 +54,10 @@ pub struct AblateArgs {
     /// Steps fitting each held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
+    /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
+    /// Output folder: ablation.md (or pose_noise.md), metrics.json, pictures, the simulated set.
     #[arg(long, default_value = "runs/ablate")]
     pub out: PathBuf,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax (wins over a config file's box,

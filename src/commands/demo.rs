@@ -17,8 +17,10 @@ use std::time::Instant;
 
 #[derive(Args)]
 pub struct DemoArgs {
+    /// Output folder: report.md, metrics.json, renders, the simulated set (data/).
     #[arg(long, default_value = "runs/demo")]
     out: PathBuf,
+    /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     threads: usize,
     /// Training steps (default: the demo's budget).
