@@ -562,6 +562,9 @@ fn a_resumed_train_gives_the_checkpoint_bytes_of_an_uninterrupted_one() {
     let printed = text(&result);
     assert!(result.status.success(), "{printed}");
     assert!(printed.contains("stopped at step 20 of 40"), "{printed}");
+    // Without a terminal the bar is hidden and plain progress lines say how far it is.
+    assert!(printed.contains("step 1/20: loss "), "{printed}");
+    assert!(printed.contains("rays/s, ETA"), "{printed}");
     assert!(!printed.contains("PSNR"), "scored a stopped run: {printed}");
     let checkpoint = part.join("checkpoint.onrf");
     let stopped = std::fs::read(&checkpoint).unwrap();

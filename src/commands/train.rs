@@ -15,7 +15,7 @@ use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures};
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// The training progress bar (the demo draws the same).
 pub(super) const TRAIN_BAR: &str = "train [{bar:30}] {pos}/{len} {per_sec} eta {eta} {msg}";
@@ -196,6 +196,9 @@ fn check_same_frames(checkpoint: &Path, trainer: &Trainer<'_>, frames: &[&Frame]
     Ok(())
 }
 
+/// How often a run without a terminal prints its progress line.
+const PLAIN_PROGRESS_EVERY: Duration = Duration::from_secs(5);
+
 struct TrainSummary {
     steps: u64,
     seconds: f64,
@@ -227,6 +230,7 @@ fn train_loop<E: Executor>(
         skipped: 0,
     };
     let mut running = RunningPsnr::default();
+    let mut last_line = start;
     for i in 0..steps {
         let report = trainer.step(executor)?;
         summary.steps += 1;
@@ -245,6 +249,21 @@ fn train_loop<E: Executor>(
             ));
         }
         bar.inc(1);
+        // Without a terminal (logs, CI) the bar is hidden: a plain line at the first step and
+        // then every few seconds says how far the run is.
+        if bar.is_hidden() && (i == 0 || last_line.elapsed() >= PLAIN_PROGRESS_EVERY) {
+            last_line = Instant::now();
+            let seconds = start.elapsed().as_secs_f64();
+            let per_step = seconds / (i + 1) as f64;
+            println!(
+                "step {}/{}: loss {:.5}, {:.0} rays/s, ETA {:.0} s",
+                trainer.state().step,
+                end,
+                report.mse,
+                summary.rays as f64 / seconds.max(1e-9),
+                per_step * (steps - i - 1) as f64
+            );
+        }
         if STOP.load(Ordering::SeqCst) {
             break;
         }
