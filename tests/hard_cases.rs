@@ -8,33 +8,15 @@
 
 mod common;
 
-use common::{orbit_nerf, output_text as text, root};
+use common::{Scratch, orbit_nerf, output_text as text, root};
+use orbit_nerf_core::Config;
 use orbit_nerf_host::formats::speedplus::{self, Label};
-use orbit_nerf_host::sim::{self, Scene};
 use orbit_nerf_host::stream::{Arrival, FrameSource, WatchOptions, WatchedFolder};
+use orbit_nerf_host::train;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-
-/// A fresh folder for one case, removed when dropped (also when the case fails).
-struct Scratch(PathBuf);
-
-impl Scratch {
-    fn new(case: &str) -> Scratch {
-        Scratch(common::temp_dir(case))
-    }
-
-    fn path(&self, name: &str) -> PathBuf {
-        self.0.join(name)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 /// The run failed cleanly: a non-zero exit that is not a panic or a signal, no score printed,
 /// and a message that contains every one of `needles`.
@@ -56,9 +38,10 @@ fn path_str(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
-/// Every numeric flag value that is out of range, not finite or not a number is refused by
-/// the argument parser with an error naming the flag, before any work starts (so these need no
-/// data). `inf` is accepted only where it means "for ever" (tested below).
+/// Every numeric flag value (of `stream`, `simulate`, `train` and `eval`) that is out of range,
+/// not finite or not a number is refused by the argument parser with an error naming the flag,
+/// before any work starts (so these need no data). `inf` is accepted only where it means "for
+/// ever" (tested below).
 #[test]
 fn out_of_range_flag_values_are_refused_naming_the_flag() {
     let scratch = Scratch::new("flags");
@@ -99,22 +82,50 @@ fn out_of_range_flag_values_are_refused_naming_the_flag() {
         ("simulate", "--memory-limit", "-1G"),
         ("simulate", "--memory-limit", "99999999999T"),
         ("stream", "--memory-limit", "lots"),
+        ("train", "--size", "0"),
+        ("train", "--size", "-1"),
+        ("train", "--size", "70000"),
+        ("train", "--size", "inf"),
+        ("train", "--holdout", "0"),
+        ("train", "--holdout", "nan"),
+        ("train", "--steps", "0"),
+        ("train", "--steps", "-5"),
+        ("train", "--steps", "1e12"),
+        ("train", "--steps", "4294967295"),
+        ("train", "--seed", "-1"),
+        ("train", "--seed", "1e400"),
+        ("train", "--threads", "0"),
+        ("train", "--threads", "100000"),
+        ("train", "--embedding-dim", "129"),
+        ("train", "--embedding-dim", "-1"),
+        ("train", "--fit-steps", "-1"),
+        ("train", "--fit-steps", "1000000"),
+        ("train", "--memory-limit", "0"),
+        ("train", "--memory-limit", "inf"),
+        ("train", "--stop-after", "0"),
+        ("train", "--scene-box", "0,0,0,inf,1,1"),
+        ("train", "--scene-box", "1,1,1,0,0,0"),
+        ("eval", "--size", "0"),
+        ("eval", "--threads", "0"),
+        ("eval", "--fit-steps", "nan"),
+        ("eval", "--memory-limit", "-1G"),
     ];
     for &(command, flag, value) in cases {
         let case = format!("{command} {flag} {value}");
         // `--flag=value`, so that negative values reach the flag's own check.
         let flag_value = format!("{flag}={value}");
-        let args = [
-            command,
-            "--scene",
-            "synthetic",
-            "--out",
-            path_str(&out),
-            &flag_value,
-        ];
-        let result = orbit_nerf(&args).output().unwrap();
+        let source = match command {
+            "train" => ["--data", "no/such/dataset", "--out", path_str(&out)],
+            "eval" => ["--data", "no/such/dataset", "--checkpoint", "no/such.onrf"],
+            _ => ["--scene", "synthetic", "--out", path_str(&out)],
+        };
+        let result = orbit_nerf(&[command, &flag_value])
+            .args(source)
+            .output()
+            .unwrap();
         assert_clear_error(&case, &result, &[flag]);
         assert_eq!(result.status.code(), Some(2), "{case}: a usage error");
+        assert!(!text(&result).contains("no/such"), "{case}: read the data");
         assert!(!out.exists(), "{case}: created its output");
     }
 }
@@ -194,10 +205,7 @@ fn stream_with_only_black_frames_fails_without_a_score() {
 /// `scratch/watched` holding only its camera file; returns the folder and the labels.
 fn watched_folder(scratch: &Scratch, frames: u32) -> (PathBuf, Vec<Label>) {
     let data = scratch.path("data");
-    let mut scene = Scene::load("lightbox").unwrap();
-    scene.spec.frames = frames;
-    scene.spec.size = 32;
-    sim::simulate(&scene, &data, &|| {}).unwrap();
+    common::simulated_lightbox(&data, frames, 32);
     let watched = scratch.path("watched");
     std::fs::create_dir_all(&watched).unwrap();
     std::fs::copy(data.join("camera.json"), watched.join("camera.json")).unwrap();
@@ -473,7 +481,7 @@ fn sizes_that_cannot_fit_fail_with_the_memory_plan() {
 #[test]
 fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
     use orbit_nerf_core::{MemoryPlan, Trainer};
-    use orbit_nerf_host::{checkpoint, train};
+    use orbit_nerf_host::checkpoint;
     let scratch = Scratch::new("nan-checkpoint");
     let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
     config.max_frames = 1;
@@ -494,5 +502,411 @@ fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
         .to_string();
     for needle in ["run.onrf", "`mlp`", "non-finite value (element 2)"] {
         assert!(error.contains(needle), "`{needle}` not in: {error}");
+    }
+}
+
+/// A simulated lightbox set of 12 frames at 32 px in `scratch/data` and a small training
+/// config (the tiny profile with 128 rays per step) in `scratch/model.toml`; returns both.
+fn small_training_run(scratch: &Scratch) -> (PathBuf, PathBuf) {
+    let data = scratch.path("data");
+    common::simulated_lightbox(&data, 12, 32);
+    (data, small_config(scratch, "model.toml", |_| {}))
+}
+
+/// The tiny profile with 128 rays per step, changed by `edit`, written to `scratch/name`.
+fn small_config(scratch: &Scratch, name: &str, edit: impl FnOnce(&mut Config)) -> PathBuf {
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.rays_per_batch = 128;
+    edit(&mut config);
+    let path = scratch.path(name);
+    std::fs::write(&path, train::config_to_toml(&config)).unwrap();
+    path
+}
+
+/// `train` on the small run of `small_training_run` for 40 steps into `out`, with `extra`.
+fn train_small(data: &Path, model: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "train",
+        "--data",
+        path_str(data),
+        "--size",
+        "32",
+        "--fit-steps",
+        "0",
+    ];
+    if !extra.contains(&"--resume") {
+        args.extend_from_slice(&["--config", path_str(model), "--steps", "40"]);
+    }
+    args.extend_from_slice(&["--out", path_str(out)]);
+    args.extend_from_slice(extra);
+    orbit_nerf(&args).output().unwrap()
+}
+
+/// Training that survives (issue 18): a run stopped at step 20 (`--stop-after`, as Ctrl-C
+/// would) and continued with `--resume` ends with the checkpoint bytes of a run never
+/// stopped; a rerun without `--resume` or `--force` does not replace the checkpoint, and a
+/// resume on other data is refused.
+#[test]
+fn a_resumed_train_gives_the_checkpoint_bytes_of_an_uninterrupted_one() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("train-resume");
+    let (data, model) = small_training_run(&scratch);
+    let whole = scratch.path("whole");
+    let result = train_small(&data, &model, &whole, &[]);
+    assert!(result.status.success(), "{}", text(&result));
+
+    let part = scratch.path("part");
+    let result = train_small(&data, &model, &part, &["--stop-after", "20"]);
+    let printed = text(&result);
+    assert!(result.status.success(), "{printed}");
+    assert!(printed.contains("stopped at step 20 of 40"), "{printed}");
+    // Without a terminal the bar is hidden and plain progress lines say how far it is.
+    assert!(printed.contains("step 1/20: loss "), "{printed}");
+    assert!(printed.contains("rays/s, ETA"), "{printed}");
+    assert!(!printed.contains("PSNR"), "scored a stopped run: {printed}");
+    let checkpoint = part.join("checkpoint.onrf");
+    let stopped = std::fs::read(&checkpoint).unwrap();
+
+    let again = train_small(&data, &model, &part, &[]);
+    assert_clear_error(
+        "train over an earlier run",
+        &again,
+        &["earlier training run", "--resume", "--force"],
+    );
+    assert_eq!(std::fs::read(&checkpoint).unwrap(), stopped, "replaced");
+    let other = train_small(&data, &model, &part, &["--resume", "--holdout", "3"]);
+    assert_clear_error(
+        "resume on other views",
+        &other,
+        &["resume with the run's --data"],
+    );
+    assert_eq!(std::fs::read(&checkpoint).unwrap(), stopped, "replaced");
+
+    let resumed = train_small(&data, &model, &part, &["--resume"]);
+    let printed = text(&resumed);
+    assert!(resumed.status.success(), "{printed}");
+    assert!(
+        printed.contains("resuming") && printed.contains("at step 20 of 40"),
+        "{printed}"
+    );
+    assert!(
+        std::fs::read(&checkpoint).unwrap()
+            == std::fs::read(whole.join("checkpoint.onrf")).unwrap(),
+        "the resumed run's checkpoint differs from the uninterrupted one"
+    );
+    let forced = train_small(&data, &model, &whole, &["--force", "--stop-after", "1"]);
+    assert!(forced.status.success(), "{}", text(&forced));
+}
+
+/// SIGTERM during `train` (as Ctrl-C) stops after the current step and writes a checkpoint
+/// that a later run can load, without scoring.
+#[test]
+fn sigterm_during_train_writes_a_checkpoint() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    use std::io::{BufRead as _, Read as _};
+    let scratch = Scratch::new("train-sigterm");
+    let (data, model) = small_training_run(&scratch);
+    let out = scratch.path("out");
+    let mut child = orbit_nerf(&[
+        "train",
+        "--data",
+        path_str(&data),
+        "--size",
+        "32",
+        "--config",
+        path_str(&model),
+        "--steps",
+        "1000000",
+        "--out",
+        path_str(&out),
+    ])
+    .stdout(std::process::Stdio::piped())
+    .stderr(std::process::Stdio::piped())
+    .spawn()
+    .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut printed = String::new();
+    // The handler is in place before training starts (and before this line is printed).
+    while !printed.contains("training on") {
+        assert!(stdout.read_line(&mut printed).unwrap() > 0, "{printed}");
+    }
+    let killed = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    stdout.read_to_string(&mut printed).unwrap();
+    let result = child.wait_with_output().unwrap();
+    printed.push_str(&text(&result));
+    assert!(result.status.success(), "{printed}");
+    assert!(printed.contains("stopped at step"), "{printed}");
+    assert!(!printed.contains("PSNR"), "scored a stopped run: {printed}");
+    let path = out.join("checkpoint.onrf");
+    let saved = orbit_nerf_host::checkpoint::load(&path).unwrap();
+    let config = train::checkpoint_config(&path, &saved).unwrap();
+    assert_eq!(config.steps, 1_000_000);
+}
+
+/// A config file's values are checked as the flags are, before the data is read: the error
+/// names the file and the field.
+#[test]
+fn out_of_range_config_file_values_are_refused_naming_the_file_and_field() {
+    let scratch = Scratch::new("config-values");
+    let tiny = std::fs::read_to_string(root().join("budgets/tiny.toml")).unwrap();
+    let cases = [
+        ("adam_eps = 1e-15", "adam_eps = nan", "adam_eps"),
+        ("adam_eps = 1e-15", "adam_eps = -1.0", "adam_eps"),
+        (
+            "learning_rate = 0.01",
+            "learning_rate = inf",
+            "learning_rate",
+        ),
+        (
+            "learning_rate = 0.01",
+            "learning_rate = 0.0",
+            "learning_rate",
+        ),
+        ("steps = 2000", "steps = 0", "steps"),
+        ("steps = 2000", "steps = -3", "steps"),
+        (
+            "rays_per_batch = 1024",
+            "rays_per_batch = 99999999999",
+            "rays_per_batch",
+        ),
+        (
+            "occupancy_threshold = 0.01",
+            "occupancy_threshold = -inf",
+            "occupancy_threshold",
+        ),
+        ("march_steps = 256", "march_steps = 0", "march_steps"),
+    ];
+    for (line, bad, field) in cases {
+        assert!(tiny.contains(line), "{line}");
+        let path = scratch.path(&format!("{field}.toml"));
+        std::fs::write(&path, tiny.replace(line, bad)).unwrap();
+        let result = orbit_nerf(&["train", "--data", "no/such/dataset", "--config"])
+            .arg(&path)
+            .arg("--out")
+            .arg(scratch.path("out"))
+            .output()
+            .unwrap();
+        assert_clear_error(bad, &result, &[path_str(&path), field]);
+        assert!(!text(&result).contains("no/such"), "{bad}: read the data");
+    }
+}
+
+/// Garbage with exit 0 no more: a run whose parameters go non-finite (a tiny `adam_eps`),
+/// one whose scene box no ray meets (0 samples per ray), one whose every frame is black
+/// and one that holds out every view end non-zero with the cause, and save no checkpoint.
+#[test]
+fn garbage_training_runs_fail_with_the_cause_and_save_nothing() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("garbage");
+    let (data, model) = small_training_run(&scratch);
+    let tiny_eps = small_config(&scratch, "eps.toml", |c| c.adam_eps = 1e-45);
+    let far_box = small_config(&scratch, "far.toml", |c| {
+        c.aabb_min = [100.0; 3];
+        c.aabb_max = [101.0; 3];
+    });
+    let black = scratch.path("black");
+    copy_dataset(&data, &black);
+    for entry in std::fs::read_dir(black.join("images")).unwrap() {
+        let path = entry.unwrap().path();
+        let (w, h) = image::image_dimensions(&path).unwrap();
+        image::RgbImage::new(w, h).save(&path).unwrap();
+    }
+    type Case<'a> = (&'a str, &'a Path, &'a Path, &'a [&'a str], &'a [&'a str]);
+    let cases: [Case; 4] = [
+        (
+            "tiny adam_eps",
+            &data,
+            &tiny_eps,
+            &[],
+            &["training diverged", "adam_eps"],
+        ),
+        (
+            "no ray in the box",
+            &data,
+            &far_box,
+            &[],
+            &["0 samples per ray"],
+        ),
+        (
+            "all-black frames",
+            &black,
+            &model,
+            &[],
+            &["training views is black"],
+        ),
+        (
+            "every view held out",
+            &data,
+            &model,
+            &["--holdout", "1"],
+            &["--holdout 1"],
+        ),
+    ];
+    for (case, data, config, extra, needles) in cases {
+        let out = scratch.path("out");
+        let result = train_small(data, config, &out, extra);
+        assert_clear_error(case, &result, needles);
+        assert!(!out.join("checkpoint.onrf").exists(), "{case}: saved");
+    }
+}
+
+/// Every step skipped (non-finite loss or gradients each time) is garbage too: the check
+/// every training command runs refuses the model, naming the cause.
+#[test]
+fn a_run_whose_every_step_was_skipped_is_refused() {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    use orbit_nerf_host::train::TrainingTally;
+    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    config.max_frames = 1;
+    config.max_pixels_per_frame = 64;
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    let tally = TrainingTally {
+        steps: 5,
+        samples: 100,
+    };
+    assert!(train::check_trained(Path::new("run"), &trainer, tally).is_ok());
+    // The state of a run of 5 steps, all skipped: step, updates, skipped, refreshes.
+    let state: Vec<u8> = [5u32, 0, 5, 0]
+        .iter()
+        .flat_map(|v| v.to_ne_bytes())
+        .collect();
+    trainer.restore_section("state", &state).unwrap();
+    let error = train::check_trained(Path::new("run"), &trainer, tally)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("every one of the 5 steps was skipped"),
+        "{error}"
+    );
+}
+
+/// Copy the dataset folder `from` (files and one level of folders) to `to`.
+fn copy_dataset(from: &Path, to: &Path) {
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        let target = to.join(path.file_name().unwrap());
+        if path.is_dir() {
+            copy_dataset(&path, &target);
+        } else {
+            std::fs::create_dir_all(to).unwrap();
+            std::fs::copy(&path, &target).unwrap();
+        }
+    }
+}
+
+/// `train` and `eval` check the model's arena against `--memory-limit` before allocating it,
+/// failing with the plan's numbers.
+#[test]
+fn train_and_eval_over_the_memory_limit_fail_with_the_plan() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("train-memory");
+    let (data, model) = small_training_run(&scratch);
+    let out = scratch.path("out");
+    let expected = [
+        "needs",
+        "frame store",
+        "memory limit of 1.0 MiB",
+        "--memory-limit",
+    ];
+    let result = train_small(&data, &model, &out, &["--memory-limit", "1M"]);
+    assert_clear_error("train --memory-limit 1M", &result, &expected);
+    // The images (12 of 32 x 32 px) are checked from their headers before they are read.
+    let result = train_small(&data, &model, &out, &["--memory-limit", "16K"]);
+    let images = ["needs", "images loaded", "memory limit of 16.0 KiB"];
+    assert_clear_error("train --memory-limit 16K", &result, &images);
+    assert!(!out.join("checkpoint.onrf").exists(), "saved");
+    let result = train_small(&data, &model, &out, &["--stop-after", "1"]);
+    assert!(result.status.success(), "{}", text(&result));
+    let checkpoint = out.join("checkpoint.onrf");
+    let result = orbit_nerf(&["eval", "--data", path_str(&data), "--size", "32"])
+        .args(["--memory-limit", "1M", "--checkpoint"])
+        .arg(&checkpoint)
+        .output()
+        .unwrap();
+    assert_clear_error("eval --memory-limit 1M", &result, &expected);
+}
+
+/// The figures a printed line of `print_scores` shows, as the JSON values they came from
+/// would print: `(index, [PSNR, right, fg, SSIM, JNB])` per view line.
+fn printed_view_lines(printed: &str) -> Vec<(usize, Vec<String>)> {
+    printed
+        .lines()
+        .filter_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let index = fields.first()?.parse().ok()?;
+            (fields.len() == 8)
+                .then(|| (index, fields[1..6].iter().map(|f| f.to_string()).collect()))
+        })
+        .collect()
+}
+
+/// A JSON number as `print_scores` prints it with `decimals` (null: a NaN, printed `NaN`).
+fn as_printed(value: &serde_json::Value, decimals: usize) -> String {
+    value
+        .as_f64()
+        .map_or("NaN".to_owned(), |v| format!("{v:.decimals$}"))
+}
+
+/// `train` and `eval` write `metrics.json` (issue 12) holding the figures they print: each
+/// view's PSNR (whole, right half, foreground), SSIM and JNB, and the mean.
+#[test]
+fn train_and_eval_write_metrics_json_with_the_printed_figures() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("metrics-json");
+    let (data, model) = small_training_run(&scratch);
+    let out = scratch.path("out");
+    let trained = train_small(&data, &model, &out, &[]);
+    let evaluated = orbit_nerf(&["eval", "--data", path_str(&data), "--size", "32"])
+        .args(["--fit-steps", "0", "--checkpoint"])
+        .arg(out.join("checkpoint.onrf"))
+        .arg("--metrics")
+        .arg(scratch.path("eval"))
+        .output()
+        .unwrap();
+    for (command, result, dir) in [
+        ("train", trained, out.clone()),
+        ("eval", evaluated, scratch.path("eval")),
+    ] {
+        let printed = text(&result);
+        assert!(result.status.success(), "{printed}");
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(json["command"], command);
+        let model = &json["models"][0];
+        let views = model["views"].as_array().unwrap();
+        let lines = printed_view_lines(&printed);
+        assert_eq!(lines.len(), views.len(), "{printed}");
+        assert_eq!(lines.len(), 2, "two held-out views: {printed}");
+        for ((index, figures), view) in lines.iter().zip(views) {
+            assert_eq!(view["index"], *index as u64);
+            let from_json = vec![
+                as_printed(&view["psnr_full"], 2),
+                as_printed(&view["psnr_right"], 2),
+                as_printed(&view["psnr_foreground"], 2),
+                as_printed(&view["ssim_full"], 4),
+                as_printed(&view["jnb_full"], 3),
+            ];
+            assert_eq!(figures, &from_json, "{command} view {index}");
+        }
+        let mean = format!(
+            "mean PSNR over 2 held-out views: {} dB",
+            as_printed(&model["mean"]["psnr_full"], 2)
+        );
+        assert!(printed.contains(&mean), "`{mean}` not in: {printed}");
     }
 }

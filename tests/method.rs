@@ -165,6 +165,31 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
         assert!(cell.parse::<f64>().is_ok_and(f64::is_finite), "{line}");
     }
     assert!(out.join("compare_view_000.png").is_file());
+    // metrics.json holds the table's figures (issue 12), model by model.
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(json["command"], "ablate");
+    let models = json["models"].as_array().unwrap();
+    assert_eq!(models.len(), 3);
+    let column = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    for model in models {
+        let name = model["name"].as_str().unwrap();
+        let row: Vec<&str> = report
+            .lines()
+            .map(|l| l.split('|').map(str::trim).collect::<Vec<_>>())
+            .find(|cells| cells.get(1) == Some(&name))
+            .unwrap_or_else(|| panic!("no row {name}"));
+        for (field, heading) in [("psnr_full", "PSNR full"), ("psnr_foreground", "fg PSNR")] {
+            let value = model["mean"][field].as_f64().expect(field);
+            assert_eq!(
+                row[column(heading)],
+                format!("{value:.2}"),
+                "{name} {field}"
+            );
+        }
+        assert_eq!(model["views"].as_array().unwrap().len(), 3, "{name}");
+        assert_eq!(model["training"]["steps"], 40, "{name}");
+    }
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -148,7 +148,7 @@ fn found_box_holds_the_target(
     let mut set = speedplus::load(
         &data,
         &LoadOptions {
-            width: Some(SIZE as u32),
+            max_side: Some(SIZE as u32),
             domain: None,
         },
     )

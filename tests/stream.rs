@@ -211,6 +211,22 @@ fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
     let whole = dir.join("whole");
     let out = run(&[], &whole).output().unwrap();
     assert!(out.status.success(), "{}", output_text(&out));
+    // metrics.json holds the summary's held-out figures (issue 12).
+    let summary = std::fs::read_to_string(whole.join("summary.md")).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(whole.join("metrics.json")).unwrap()).unwrap();
+    let streamed = &json["models"][0];
+    assert_eq!(
+        (&json["command"], &streamed["name"]),
+        (&"stream".into(), &"streamed".into())
+    );
+    let psnr = streamed["mean"]["psnr_full"].as_f64().unwrap();
+    let ssim = streamed["mean"]["ssim_full"].as_f64().unwrap();
+    let line = format!("held-out PSNR {psnr:.2} dB");
+    assert!(
+        summary.contains(&line) && summary.contains(&format!("SSIM {ssim:.4}")),
+        "{summary}"
+    );
 
     // Start a run and send it `signal` once its first checkpoint is there (the run is under
     // way), after `delay`; returns what it printed and whether it exited cleanly.

@@ -5,7 +5,7 @@
 
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};
-use crate::report::{self, PoseErrors, ViewMetrics};
+use crate::report::{self, ModelFigures, PoseErrors, TrainingFigures, ViewFigures, ViewMetrics};
 use crate::train::{self, RayonExecutor};
 use orbit_nerf_core::glam::{Mat3, Vec3};
 use orbit_nerf_core::{Config, MemoryPlan, Pose, PoseCorrection, StepReport, Trainer};
@@ -50,6 +50,21 @@ pub struct VariantResult {
     /// against the exact poses (when the dataset has them).
     pub pose_before: Option<PoseErrors>,
     pub pose_after: Option<PoseErrors>,
+    /// Each held-out view's figures, in `test` order.
+    pub views: Vec<ViewFigures>,
+    pub training: TrainingFigures,
+}
+
+impl VariantResult {
+    /// The model's figures for `metrics.json`, under its variant's name.
+    pub fn figures(&self) -> ModelFigures {
+        ModelFigures {
+            name: self.variant.name.to_string(),
+            mean: self.metrics,
+            views: self.views.clone(),
+            training: Some(self.training),
+        }
+    }
 }
 
 /// A dataset with its held-out split, the exact poses when known, and how a model is
@@ -130,13 +145,27 @@ impl Experiment<'_> {
             .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
         train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
         let start = Instant::now();
+        let (mut rays, mut samples) = (0u64, 0u64);
         for _ in 0..config.steps {
             let report = trainer
                 .step(&executor)
                 .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
+            rays += report.rays as u64;
+            samples += report.samples as u64;
             on_step(&report);
         }
         let train_seconds = start.elapsed().as_secs_f64();
+        let tally = train::TrainingTally {
+            steps: config.steps as u64,
+            samples,
+        };
+        train::check_trained(&dataset.source, &trainer, tally)?;
+        let training = TrainingFigures {
+            steps: trainer.state().step as u64,
+            steps_skipped: trainer.state().skipped as u64,
+            seconds: train_seconds,
+            samples_per_ray: samples as f64 / rays.max(1) as f64,
+        };
         if let Some(path) = checkpoint {
             train::save_checkpoint(path, &trainer)?;
         }
@@ -185,9 +214,11 @@ impl Experiment<'_> {
             },
             train_seconds,
             metrics: report::mean_metrics(&per_view),
+            views: train::view_figures(&scores),
             renders: scores.into_iter().map(|s| s.render).collect(),
             pose_before,
             pose_after,
+            training,
         })
     }
 }

@@ -29,6 +29,30 @@ pub fn check_output_folder(out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Before a fresh run (a training run, a stream): refuse to replace the checkpoint of an
+/// earlier `run` at `path` unless `replace`, after checking its folder can be the output
+/// folder.
+pub fn check_fresh_checkpoint(path: &Path, replace: bool, run: &str) -> Result<()> {
+    if let Some(out) = path.parent() {
+        check_output_folder(out)?;
+    }
+    if path.exists() && !replace {
+        return Err(HostError::invalid(
+            path,
+            format!(
+                "holds the checkpoint of an earlier {run}; continue it with --resume, or replace it with --force"
+            ),
+        ));
+    }
+    if path.is_dir() {
+        return Err(HostError::invalid(
+            path,
+            format!("is a folder; the {run}'s checkpoint cannot be written there"),
+        ));
+    }
+    Ok(())
+}
+
 /// Write `bytes` to `path` atomically (temporary file, fsync, rename). Creates parent folders.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {

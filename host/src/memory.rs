@@ -3,6 +3,7 @@
 //! aborting with `memory allocation failed` part-way through.
 
 use crate::error::{HostError, Result};
+use crate::formats::transforms::{OutputSize, output_size};
 use orbit_nerf_core::MemoryPlan;
 use std::path::Path;
 
@@ -80,10 +81,54 @@ pub fn check_arena(what: &Path, plan: &MemoryPlan, limit: Option<u64>) -> Result
     check_plan(what, &all, limit)
 }
 
-/// Bytes as MiB or GiB, for messages.
+/// Folder levels below a dataset folder searched for images.
+const IMAGE_SEARCH_DEPTH: usize = 4;
+
+/// An upper bound of the memory the images of the dataset folder `folder` take once loaded
+/// with their longer side at most `max_side` (never upsampled), read from the image headers
+/// without decoding: every image below it (the loaders read at most these) as RGB plus a
+/// mask, and the largest one decoded at its stored size (RGBA, f32 while resampled).
+pub fn dataset_parts(folder: &Path, max_side: Option<u32>) -> [Part; 2] {
+    let size = max_side.map_or(OutputSize::Original, OutputSize::MaxSide);
+    let (mut loaded, mut largest) = (0u64, 0u64);
+    for path in image_files(folder, IMAGE_SEARCH_DEPTH) {
+        // Unreadable headers are left to the loader, which names the file.
+        let Ok((w, h)) = image::image_dimensions(&path) else {
+            continue;
+        };
+        let (out_w, out_h) = output_size(size, (w, h));
+        loaded = loaded.saturating_add(out_w as u64 * out_h as u64 * 4);
+        largest = largest.max(w as u64 * h as u64 * 4 * 4);
+    }
+    [("images loaded", loaded), ("image being decoded", largest)]
+}
+
+/// PNG and JPEG files below `dir`, `depth` folder levels deep at most.
+fn image_files(dir: &Path, depth: usize) -> Vec<std::path::PathBuf> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let mut files = Vec::new();
+    for path in entries.filter_map(|e| e.ok().map(|e| e.path())) {
+        if path.is_dir() && depth > 0 {
+            files.extend(image_files(&path, depth - 1));
+        } else if path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
+        {
+            files.push(path);
+        }
+    }
+    files
+}
+
+/// Bytes as KiB, MiB or GiB, for messages.
 pub fn human(bytes: u64) -> String {
     let mib = bytes as f64 / (1u64 << 20) as f64;
-    if mib >= 1024.0 {
+    if mib < 1.0 {
+        format!("{:.1} KiB", bytes as f64 / 1024.0)
+    } else if mib >= 1024.0 {
         format!("{:.1} GiB", mib / 1024.0)
     } else {
         format!("{mib:.1} MiB")
@@ -107,6 +152,33 @@ mod tests {
         assert!(check_plan(Path::new("run"), &parts, Some(5 << 30)).is_ok());
         assert!(check_plan(Path::new("run"), &[("x", u64::MAX), ("y", 9)], None).is_ok());
         assert!(check_plan(Path::new("run"), &[("x", u64::MAX), ("y", 9)], Some(1)).is_err());
+    }
+
+    #[test]
+    fn the_images_of_a_dataset_are_estimated_from_their_headers_never_upsampled() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("images")).unwrap();
+        for name in ["images/a.png", "b.PNG"] {
+            image::RgbImage::new(64, 32)
+                .save_with_format(dir.path().join(name), image::ImageFormat::Png)
+                .unwrap();
+        }
+        std::fs::write(dir.path().join("labels.json"), b"[]").unwrap();
+        let decoding = 64 * 32 * 16;
+        assert_eq!(
+            dataset_parts(dir.path(), Some(16)),
+            [
+                ("images loaded", 2 * 16 * 8 * 4),
+                ("image being decoded", decoding)
+            ]
+        );
+        assert_eq!(
+            dataset_parts(dir.path(), Some(1000)),
+            [
+                ("images loaded", 2 * 64 * 32 * 4),
+                ("image being decoded", decoding)
+            ]
+        );
     }
 
     #[test]

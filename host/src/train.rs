@@ -5,7 +5,7 @@ use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
-use crate::report::{ViewMetrics, score_view};
+use crate::report::{ViewFigures, ViewMetrics, score_view};
 use orbit_nerf_core::{Config, Executor, Trainer};
 use rayon::prelude::*;
 use std::path::Path;
@@ -172,6 +172,66 @@ pub fn load_frames<'f>(
     Ok(())
 }
 
+/// Refuse training frames with nothing to learn from: every pixel of every one black (an
+/// exposure of 0, a target that is never lit). `source` names the dataset in the error.
+pub fn check_frames_have_content<'f>(
+    source: &Path,
+    frames: impl IntoIterator<Item = &'f Frame>,
+) -> Result<()> {
+    let mut count = 0;
+    for frame in frames {
+        if frame.pixels.iter().any(|&v| v > 0) {
+            return Ok(());
+        }
+        count += 1;
+    }
+    Err(HostError::invalid(
+        source,
+        format!("every one of the {count} training views is black: nothing to train on"),
+    ))
+}
+
+/// What a training run took: steps, and the samples its rays met in the scene box.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainingTally {
+    pub steps: u64,
+    pub samples: u64,
+}
+
+/// Refuse a trained model that is garbage, naming the cause, before it is saved or scored:
+/// parameters that are not finite (a diverged run, e.g. an `adam_eps` so small that Adam
+/// divides 0 by 0), every step skipped, or no training ray that met the scene box. `run`
+/// names the run in the error.
+pub fn check_trained(run: &Path, trainer: &Trainer<'_>, tally: TrainingTally) -> Result<()> {
+    let refuse = |why: String| {
+        Err(HostError::invalid(
+            run,
+            format!("{why}; the model is garbage, not saved and not scored"),
+        ))
+    };
+    if let Some((section, index)) = trainer.first_non_finite_section() {
+        return refuse(format!(
+            "training diverged: `{section}` holds a non-finite value (element {index}) after step {} (check learning_rate and adam_eps)",
+            trainer.state().step
+        ));
+    }
+    let state = trainer.state();
+    if state.step > 0 && state.skipped == state.step {
+        return refuse(format!(
+            "every one of the {} steps was skipped (non-finite loss or gradients)",
+            state.step
+        ));
+    }
+    if tally.steps > 0 && tally.samples == 0 {
+        return refuse(format!(
+            "no training ray met the scene box in {} steps (0 samples per ray): the box {} is not where the cameras look",
+            tally.steps,
+            crate::scene_box::box_text(trainer.config().aabb_min, trainer.config().aabb_max)
+        ));
+    }
+    Ok(())
+}
+
 /// f32 RGB in [0, 1] to RGB8.
 pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
     image
@@ -255,6 +315,20 @@ pub struct ViewScore {
     pub seconds: f64,
     /// The rendering, RGB f32 in [0, 1].
     pub render: Vec<f32>,
+}
+
+/// The views' figures for `metrics.json`.
+pub fn view_figures(scores: &[ViewScore]) -> Vec<ViewFigures> {
+    scores
+        .iter()
+        .map(|s| ViewFigures {
+            index: s.index,
+            name: s.name.clone(),
+            metrics: s.metrics,
+            samples_per_ray: s.samples_per_ray as f64,
+            seconds: s.seconds,
+        })
+        .collect()
 }
 
 /// Evaluate held-out views as in the paper and K-Planes: with the field frozen, start a

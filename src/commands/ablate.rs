@@ -26,7 +26,8 @@ pub struct AblateArgs {
     /// Frames to simulate.
     #[arg(long, default_value_t = 400)]
     pub frames: u32,
-    /// Image size in pixels.
+    /// Image size in pixels: the simulated frames' side, or the longer side a --data set's
+    /// frames are resized to (never upsampled).
     #[arg(long, default_value_t = 128)]
     pub size: u16,
     /// Training steps of every model (the same budget for all; the default config's).
@@ -56,8 +57,10 @@ pub struct AblateArgs {
     /// Steps fitting each held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
+    /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
+    /// Output folder: ablation.md (or pose_noise.md), metrics.json, pictures, the simulated set.
     #[arg(long, default_value = "runs/ablate")]
     pub out: PathBuf,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax (wins over a config file's box,
@@ -110,7 +113,7 @@ pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Ve
     let set = speedplus::load(
         path,
         &LoadOptions {
-            width: Some(size as u32),
+            max_side: Some(size as u32),
             domain: None,
         },
     )?;
@@ -238,8 +241,13 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
         writeln!(text, "![view {index}]({name})")?;
     }
     orbit_nerf_host::io::write_atomic(&args.out.join("ablation.md"), text.as_bytes())?;
+    let models = results.iter().map(VariantResult::figures).collect();
+    report::Figures::new("ablate", models).write(&args.out)?;
     println!("{text}");
-    println!("report and pictures in {}", args.out.display());
+    println!(
+        "report, metrics.json and pictures in {}",
+        args.out.display()
+    );
     Ok(())
 }
 

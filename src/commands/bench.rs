@@ -12,6 +12,7 @@ pub struct BenchArgs {
     /// Dataset to train on (default: the lego scene).
     #[arg(long, default_value = "../shared/data/nerf_synthetic/lego")]
     data: PathBuf,
+    /// Resize images so the longer side has at most this many pixels (never upsampled).
     #[arg(long, default_value_t = 100)]
     size: u32,
     /// Steps before timing starts (lets the occupancy grid settle).
@@ -23,6 +24,7 @@ pub struct BenchArgs {
     /// Thread counts to measure.
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     threads: Vec<usize>,
+    /// Model config (TOML, every field; see budgets/); default: the built-in config.
     #[arg(long)]
     config: Option<PathBuf>,
 }
@@ -64,7 +66,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     );
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
-        with_trainer(config, &frames, |trainer| {
+        with_trainer(config, None, &frames, |trainer| {
             for _ in 0..args.warmup {
                 trainer.step(&executor)?;
             }

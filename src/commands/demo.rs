@@ -17,8 +17,10 @@ use std::time::Instant;
 
 #[derive(Args)]
 pub struct DemoArgs {
+    /// Output folder: report.md, metrics.json, renders, the simulated set (data/).
     #[arg(long, default_value = "runs/demo")]
     out: PathBuf,
+    /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     threads: usize,
     /// Training steps (default: the demo's budget).
@@ -110,7 +112,8 @@ pub fn run(args: &DemoArgs) -> CliResult {
         start.elapsed().as_secs_f64()
     )?;
     orbit_nerf_host::io::write_atomic(&args.out.join("report.md"), text.as_bytes())?;
+    report::Figures::new("demo", vec![result.figures()]).write(&args.out)?;
     println!("{text}");
-    println!("report and renders in {}", args.out.display());
+    println!("report, metrics.json and renders in {}", args.out.display());
     Ok(())
 }

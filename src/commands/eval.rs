@@ -1,26 +1,46 @@
 //! `orbit-nerf eval`: score held-out views of a dataset with a checkpoint.
 
-use super::{CliResult, DataArgs, FIT_STEPS, evaluate_checkpoint, open_dataset, print_scores};
+use super::{
+    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, MAX_THREADS, check_checkpoint_memory,
+    check_dataset_memory, evaluate_checkpoint, open_dataset, print_scores,
+};
 use clap::Args;
+use orbit_nerf_host::report::{Figures, ModelFigures};
+use orbit_nerf_host::{train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct EvalArgs {
     #[command(flatten)]
     data: DataArgs,
+    /// The checkpoint to score (checkpoint.onrf of a `train` run).
     #[arg(long)]
     checkpoint: PathBuf,
     /// Write renders and ground truth of the held-out views here.
     #[arg(long)]
     renders: Option<PathBuf>,
-    #[arg(long, default_value_t = 2)]
+    /// Write the printed figures as JSON to METRICS/metrics.json (default: into the --renders
+    /// folder when one is given).
+    #[arg(long)]
+    metrics: Option<PathBuf>,
+    /// Worker threads, 1 to 1024 (results do not depend on it).
+    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
     threads: usize,
-    /// Steps fitting each view's appearance embedding on its left half.
-    #[arg(long, default_value_t = FIT_STEPS)]
+    /// Steps fitting each view's appearance embedding on its left half (0 to 100000).
+    #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]
     fit_steps: u32,
+    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
+    /// machine's available memory. Checked before anything large is allocated.
+    #[arg(long, value_parser = values::byte_size)]
+    memory_limit: Option<u64>,
 }
 
 pub fn run(args: &EvalArgs) -> CliResult {
+    for dir in [&args.metrics, &args.renders].into_iter().flatten() {
+        orbit_nerf_host::io::check_output_folder(dir)?;
+    }
+    check_checkpoint_memory(&args.checkpoint, args.memory_limit)?;
+    check_dataset_memory(&args.data, args.memory_limit)?;
     let (dataset, _, test_idx) = open_dataset(&args.data)?;
     let scores = evaluate_checkpoint(
         &args.checkpoint,
@@ -30,6 +50,16 @@ pub fn run(args: &EvalArgs) -> CliResult {
         args.fit_steps,
         args.renders.as_deref(),
     )?;
-    print_scores(&scores);
+    let mean = print_scores(&scores);
+    if let Some(dir) = args.metrics.as_ref().or(args.renders.as_ref()) {
+        let model = ModelFigures {
+            name: args.checkpoint.display().to_string(),
+            mean,
+            views: train::view_figures(&scores),
+            training: None,
+        };
+        Figures::new("eval", vec![model]).write(dir)?;
+        println!("metrics.json in {}", dir.display());
+    }
     Ok(())
 }

@@ -16,14 +16,15 @@ use indicatif::ProgressStyle;
 use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset, Frame};
-use orbit_nerf_host::formats;
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box::{self, StatedBox};
 use orbit_nerf_host::train::{
     RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
     read_config, restore_checkpoint,
 };
+use orbit_nerf_host::{formats, memory, values};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 pub type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 pub type CliResult = Fallible<()>;
@@ -35,11 +36,12 @@ struct DataArgs {
     /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT.
     #[arg(long)]
     data: PathBuf,
-    /// Resize images so the longer side has this many pixels.
-    #[arg(long, default_value_t = 100)]
+    /// Resize images so the longer side has at most this many pixels, 1 to 65535 (smaller
+    /// images keep their size: never upsampled), for every format.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=65_535))]
     size: u32,
-    /// Every N-th view (0, N, 2N, ...) is held out for evaluation.
-    #[arg(long, default_value_t = 8)]
+    /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view).
+    #[arg(long, default_value_t = 8, value_parser = |text: &str| values::count_in(text, 1..=1_000_000))]
     holdout: usize,
     /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
     /// get the background colour for training and scoring (as the paper removes it).
@@ -52,24 +54,28 @@ struct ModelArgs {
     /// Full model and training config (TOML, every field; see budgets/).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Training steps (overrides the config).
-    #[arg(long)]
+    /// Training steps, 1 to 100 million (overrides the config).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_STEPS))]
     steps: Option<u32>,
     /// Random seed (overrides the config).
     #[arg(long)]
     seed: Option<u64>,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads, 1 to 1024 (results do not depend on it).
+    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
     threads: usize,
-    /// Appearance embedding size per frame (overrides the config; 0 disables it).
-    #[arg(long)]
+    /// Appearance embedding size per frame, 0 to 128 (overrides the config; 0 disables it).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(0..=MAX_EMBEDDING_DIM))]
     embedding_dim: Option<u16>,
     /// Learn a pose correction per frame (overrides the config).
     #[arg(long)]
     pose_correction: Option<bool>,
-    /// Evaluation: steps fitting a held-out view's embedding on its left half.
-    #[arg(long, default_value_t = FIT_STEPS)]
+    /// Evaluation: steps fitting a held-out view's embedding on its left half (0 to 100000).
+    #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]
     fit_steps: u32,
+    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
+    /// machine's available memory. Checked before anything large is allocated.
+    #[arg(long, value_parser = values::byte_size)]
+    memory_limit: Option<u64>,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax in world units (wins over a config
     /// file's box, truth.json's and the box found from the data).
     #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
@@ -111,12 +117,40 @@ fn choose_box(
     Ok(())
 }
 
+/// Raised by Ctrl-C / SIGTERM once [`stop_on_signal`] is installed: `train` stops after the
+/// current step and `stream` after the current frame, and both checkpoint.
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// Make Ctrl-C and SIGTERM raise [`STOP`] instead of ending the process.
+fn stop_on_signal() -> CliResult {
+    Ok(ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?)
+}
+
+/// Most training steps a flag accepts.
+const MAX_STEPS: i64 = 100_000_000;
+/// Most worker threads a flag accepts.
+const MAX_THREADS: usize = 1024;
+/// Largest appearance embedding (the core's limit).
+const MAX_EMBEDDING_DIM: i64 = 128;
+/// Most steps fitting a held-out view's embedding.
+const MAX_FIT_STEPS: i64 = 100_000;
+
 /// Default steps fitting a held-out view's appearance embedding.
 const FIT_STEPS: u32 = orbit_nerf_host::train::DEFAULT_FIT_STEPS;
 
 /// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (the loader
 /// sets that itself).
 const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
+
+/// Check the memory the dataset's images will take (from their headers) against
+/// `memory_limit` (default: a share of the machine's memory) before they are read.
+fn check_dataset_memory(data: &DataArgs, memory_limit: Option<u64>) -> CliResult {
+    Ok(memory::check_plan(
+        &data.data,
+        &memory::dataset_parts(&data.data, Some(data.size)),
+        memory::limit_or_default(memory_limit),
+    )?)
+}
 
 fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
     let mut dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
@@ -156,13 +190,20 @@ fn model_config(model: &ModelArgs) -> Fallible<Config> {
     Ok(config)
 }
 
-/// A trainer over a fresh arena, with the training frames loaded.
+/// A trainer over a fresh arena (checked against `memory_limit`, or a share of the
+/// machine's memory, before it is allocated), with the training frames loaded.
 fn with_trainer<R>(
     config: Config,
+    memory_limit: Option<u64>,
     frames: &[&Frame],
     f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>,
 ) -> Fallible<R> {
     let plan = MemoryPlan::new(&config);
+    memory::check_arena(
+        Path::new("the model"),
+        &plan,
+        memory::limit_or_default(memory_limit),
+    )?;
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
     load_frames(&mut trainer, frames.iter().copied())?;
@@ -208,6 +249,18 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
     mean
 }
 
+/// Check the arena the checkpoint at `path` needs against `memory_limit` (default: a share of
+/// the machine's memory) before its data is read.
+fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> CliResult {
+    let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
+    let plan = MemoryPlan::new(&checkpoint_config(path, &checkpoint)?);
+    Ok(memory::check_arena(
+        path,
+        &plan,
+        memory::limit_or_default(memory_limit),
+    )?)
+}
+
 /// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
 /// fitting each view's embedding for `fit_steps`; renders go to `renders` when given.
 fn evaluate_checkpoint(
@@ -221,7 +274,7 @@ fn evaluate_checkpoint(
     let executor = RayonExecutor::new(threads)?;
     let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
     let config = checkpoint_config(path, &checkpoint)?;
-    with_trainer(config, &[], |trainer| {
+    with_trainer(config, None, &[], |trainer| {
         restore_checkpoint(path, &checkpoint, trainer)?;
         Ok(evaluate(
             trainer, &executor, dataset, views, fit_steps, renders,

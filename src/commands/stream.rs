@@ -2,11 +2,11 @@
 //! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
-use super::{FIT_STEPS, Fallible, SceneBox, bar_style, parse_scene_box};
+use super::{FIT_STEPS, Fallible, STOP, SceneBox, bar_style, parse_scene_box, stop_on_signal};
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use orbit_nerf_host::ablation::APPEARANCE_POSE;
-use orbit_nerf_host::report::ViewMetrics;
+use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures, ViewMetrics};
 use orbit_nerf_host::scene_box::box_text;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
@@ -17,7 +17,6 @@ use orbit_nerf_host::train::{self, RayonExecutor};
 use orbit_nerf_host::{memory, values};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 #[derive(clap::Args, Debug, Clone)]
@@ -36,8 +35,9 @@ pub struct StreamArgs {
     /// Frames to simulate (--scene).
     #[arg(long, default_value_t = 120, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: u32,
-    /// Image size in pixels (simulated size, or the width dataset frames are resized to); at
-    /// least 22, so that each half of a held-out view is wide enough for SSIM's 11x11 window.
+    /// Image size in pixels: the simulated frames' longer side, or the longer side dataset
+    /// frames are resized to (never upsampled); at least 22, so that each half of a held-out
+    /// view is wide enough for SSIM's 11x11 window.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u16).range(22..))]
     pub size: u16,
     /// Frame slots of the core's store.
@@ -116,7 +116,7 @@ pub struct StreamArgs {
     /// Worker threads, 1 to 1024 (results do not depend on it).
     #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=1024))]
     pub threads: usize,
-    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md.
+    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md, metrics.json.
     #[arg(long, default_value = "runs/stream")]
     pub out: PathBuf,
 }
@@ -138,12 +138,9 @@ impl From<Policy> for Replacement {
     }
 }
 
-/// Raised by Ctrl-C / SIGTERM: the stream stops after the current frame and checkpoints.
-static STOP: AtomicBool = AtomicBool::new(false);
-
 pub fn run(args: &StreamArgs) -> Fallible<()> {
-    ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst))?;
-    let width = Some(args.size as u32);
+    stop_on_signal()?;
+    let max_side = Some(args.size as u32);
     if let Some(name) = &args.scene {
         let mut scene = Scene::load(name)?;
         scene.spec.frames = args.frames;
@@ -151,14 +148,14 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
         let mut source = SimulatorSource::new(&scene)?;
         stream_from(args, &mut source)
     } else if let Some(dir) = &args.data {
-        stream_from(args, &mut DatasetSource::open(dir, width, args.rate)?)
+        stream_from(args, &mut DatasetSource::open(dir, max_side, args.rate)?)
     } else if let Some(dir) = &args.watch {
         let options = WatchOptions {
             poll: Duration::from_millis(args.poll_ms),
             grace: Duration::from_millis(args.grace_ms),
             idle_timeout: args.idle_timeout.0,
         };
-        stream_from(args, &mut WatchedFolder::open(dir, width, options)?)
+        stream_from(args, &mut WatchedFolder::open(dir, max_side, options)?)
     } else {
         Err("give a source: --scene, --data or --watch".into())
     }
@@ -194,7 +191,7 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         let (checkpoint, config, state) = stream::resume(&checkpoint_path, source)?;
         (config, state, Some(checkpoint))
     } else {
-        stream::check_fresh_start(&checkpoint_path, args.force)?;
+        orbit_nerf_host::io::check_fresh_checkpoint(&checkpoint_path, args.force, "stream")?;
         let mut info = source.info().clone();
         info.frames = info.frames.or(args.max_frames);
         let base = model_config(args)?;
@@ -342,9 +339,10 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     };
     let summary = summary(&state, &trainer, seconds, offline.as_ref());
     orbit_nerf_host::io::write_atomic(&args.out.join("summary.md"), summary.as_bytes())?;
+    figures(&state, &trainer, seconds, offline.as_ref()).write(&args.out)?;
     print!("{summary}");
     println!(
-        "checkpoint, anytime.csv, anytime.png and summary.md in {}",
+        "checkpoint, anytime.csv, anytime.png, summary.md and metrics.json in {}",
         args.out.display()
     );
     Ok(())
@@ -366,6 +364,39 @@ fn offline(
         stream::offline_reference(source, state, config, steps, executor, &mut |_| bar.inc(1))?;
     bar.finish_and_clear();
     Ok((metrics, start.elapsed().as_secs_f64()))
+}
+
+/// The summary's models for `metrics.json`: the streamed model at its last held-out score,
+/// and the offline reference when there is one (no per-view figures: a stream keeps means).
+fn figures(
+    state: &StreamState,
+    trainer: &Trainer<'_>,
+    seconds: f64,
+    offline: Option<&(ViewMetrics, f64)>,
+) -> Figures {
+    let mut models = Vec::new();
+    if let Some(last) = state.curve.last() {
+        models.push(ModelFigures {
+            name: "streamed".into(),
+            mean: last.metrics(),
+            views: Vec::new(),
+            training: Some(TrainingFigures {
+                steps: trainer.state().step as u64,
+                steps_skipped: trainer.state().skipped as u64,
+                seconds,
+                samples_per_ray: f64::NAN,
+            }),
+        });
+    }
+    if let Some((metrics, _)) = offline {
+        models.push(ModelFigures {
+            name: "offline reference".into(),
+            mean: *metrics,
+            views: Vec::new(),
+            training: None,
+        });
+    }
+    Figures::new("stream", models)
 }
 
 fn summary(

@@ -4,7 +4,8 @@
 // Each test binary compiles this module and uses only part of it.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use orbit_nerf_host::sim::{self, Scene};
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// The repository root (where `budgets/` and `Cargo.toml` are).
@@ -35,6 +36,35 @@ pub fn temp_dir(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// A fresh folder for one test ([`temp_dir`]), removed when dropped (also when the test fails).
+pub struct Scratch(pub PathBuf);
+
+impl Scratch {
+    pub fn new(name: &str) -> Scratch {
+        Scratch(temp_dir(name))
+    }
+
+    /// `name` inside the folder.
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Simulate `frames` frames of the lightbox preset at `size` px into the dataset folder `out`
+/// (needs the reference data: check [`shared_data`] first).
+pub fn simulated_lightbox(out: &Path, frames: u32, size: u16) {
+    let mut scene = Scene::load("lightbox").unwrap();
+    scene.spec.frames = frames;
+    scene.spec.size = size;
+    sim::simulate(&scene, out, &|| {}).unwrap();
 }
 
 /// The `orbit-nerf` binary with `args`, run from the repository root.

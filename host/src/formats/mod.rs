@@ -37,7 +37,7 @@ pub fn open(path: &Path, max_side: Option<u32>, background: [f32; 3]) -> Result<
         nerfstudio::load_nerfstudio(path, &options)
     } else {
         let options = speedplus::LoadOptions {
-            width: max_side,
+            max_side,
             domain: None,
         };
         Ok(speedplus::load(path, &options)?.dataset)

@@ -8,6 +8,7 @@
 //!
 //! Both round to bytes with [`to_byte`].
 
+use super::transforms::{OutputSize, output_size};
 use crate::error::{HostError, Result};
 use image::{ImageBuffer, Luma, Rgba};
 use orbit_nerf_core::Camera;
@@ -129,17 +130,17 @@ pub(crate) struct Resampler {
 }
 
 impl Resampler {
-    /// `width`: the output width (the height keeps the aspect ratio); `None` keeps the size.
+    /// `max_side`: the output's longer side (the aspect ratio kept; never larger than the
+    /// stored size, so small images are not upsampled); `None` keeps the size.
     pub(crate) fn new(
         source: Camera,
         distortion: Option<Distortion>,
-        width: Option<u32>,
+        max_side: Option<u32>,
     ) -> Resampler {
         let (source_width, source_height) = (source.width as u32, source.height as u32);
-        let out_width = width.unwrap_or(source_width).clamp(1, u16::MAX as u32);
+        let size = max_side.map_or(OutputSize::Original, OutputSize::MaxSide);
+        let (out_width, out_height) = output_size(size, (source_width, source_height));
         let scale_x = out_width as f32 / source_width as f32;
-        let out_height =
-            ((source_height as f32 * scale_x).round() as u32).clamp(1, u16::MAX as u32);
         let scale_y = out_height as f32 / source_height as f32;
         let output = Camera {
             width: out_width as u16,
@@ -254,4 +255,39 @@ fn bilinear(
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--size` for SPEED+/SHIRT frames: the longer side, landscape or portrait, and a size
+    /// above the stored one keeps the stored size (no upsampling).
+    #[test]
+    fn the_output_has_the_requested_longer_side_and_is_never_upsampled() {
+        let camera = |width, height| Camera {
+            width,
+            height,
+            fx: 50.0,
+            fy: 50.0,
+            cx: width as f32 / 2.0,
+            cy: height as f32 / 2.0,
+        };
+        let cases = [
+            ((64, 40), Some(32), (32, 20)),
+            ((40, 64), Some(32), (20, 32)),
+            ((64, 40), Some(1000), (64, 40)),
+            ((64, 40), None, (64, 40)),
+        ];
+        for ((w, h), max_side, expected) in cases {
+            let output = Resampler::new(camera(w, h), None, max_side).output;
+            assert_eq!(
+                (output.width, output.height),
+                expected,
+                "{w}x{h} {max_side:?}"
+            );
+            let scale = expected.0 as f32 / w as f32;
+            assert!((output.fx - 50.0 * scale).abs() < 1e-4);
+        }
+    }
 }

@@ -224,9 +224,9 @@ impl Truth {
 /// Choices made while loading.
 #[derive(Clone, Debug, Default)]
 pub struct LoadOptions {
-    /// Width to resample the images to (the height keeps the aspect ratio); `None` keeps the
-    /// stored size. Resampling area-averages, so downsizing does not alias.
-    pub width: Option<u32>,
+    /// Longer side to resample the images to (the aspect ratio kept, never upsampled);
+    /// `None` keeps the stored size. Resampling area-averages, so downsizing does not alias.
+    pub max_side: Option<u32>,
     /// SHIRT image domain inside a `roeN` folder: `synthetic` (the default) or `lightbox`.
     pub domain: Option<String>,
 }
@@ -335,7 +335,7 @@ impl SpeedPlusReader {
         Ok(SpeedPlusReader {
             labels,
             truth,
-            decoder: FrameDecoder::new(camera, options.width),
+            decoder: FrameDecoder::new(camera, options.max_side),
             label_file,
             images_dir,
             masks_dir,
@@ -405,10 +405,11 @@ pub struct FrameDecoder {
 }
 
 impl FrameDecoder {
-    /// `width`: the output width (the height keeps the aspect ratio); `None` keeps the size.
-    pub fn new(camera: SpeedCamera, width: Option<u32>) -> FrameDecoder {
+    /// `max_side`: the output's longer side (the aspect ratio kept, never upsampled); `None`
+    /// keeps the size.
+    pub fn new(camera: SpeedCamera, max_side: Option<u32>) -> FrameDecoder {
         FrameDecoder {
-            resampler: Resampler::new(camera.pinhole(), camera.distortion(), width),
+            resampler: Resampler::new(camera.pinhole(), camera.distortion(), max_side),
             camera,
         }
     }
@@ -638,7 +639,7 @@ mod tests {
             let set = load(
                 &path,
                 &LoadOptions {
-                    width: None,
+                    max_side: None,
                     domain,
                 },
             )
@@ -855,7 +856,7 @@ mod tests {
             let set = load(
                 root,
                 &LoadOptions {
-                    width: Some(32),
+                    max_side: Some(32),
                     domain: None,
                 },
             )

@@ -11,6 +11,7 @@
 //! `plotters` draws the plot geometry (grid, frame, ticks, series) with its bitmap backend only.
 
 mod canvas;
+mod figures;
 mod plot;
 mod pose_noise;
 mod poses;
@@ -18,6 +19,7 @@ mod strip;
 mod tables;
 mod views;
 
+pub use figures::{FIGURES_SCHEMA, Figures, ModelFigures, TrainingFigures, ViewFigures};
 pub use plot::line_plot;
 pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};
 pub use poses::{

@@ -77,6 +77,23 @@ pub struct AnytimePoint {
     pub rss_mib: f64,
 }
 
+impl AnytimePoint {
+    /// The point's held-out means as view metrics; what a point does not keep (JNB, the
+    /// right half's foreground PSNR) is NaN.
+    pub fn metrics(&self) -> ViewMetrics {
+        ViewMetrics {
+            psnr_right: self.psnr_right,
+            ssim_right: self.ssim_right,
+            jnb_right: f64::NAN,
+            psnr_full: self.psnr,
+            ssim_full: self.ssim,
+            jnb_full: f64::NAN,
+            psnr_foreground: self.psnr_foreground,
+            psnr_foreground_right: f64::NAN,
+        }
+    }
+}
+
 /// Everything about a stream beyond the trainer's state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamState {
@@ -515,27 +532,6 @@ pub fn resume<S: FrameSource + ?Sized>(
     }
     source.seek(state.position, &state.arrived)?;
     Ok((checkpoint, config, state))
-}
-
-/// Before a fresh stream: refuse to replace the checkpoint of an earlier stream at `path`
-/// unless `replace` (the user asked for it); continuing it is `resume`'s job.
-pub fn check_fresh_start(path: &Path, replace: bool) -> Result<()> {
-    if let Some(out) = path.parent() {
-        crate::io::check_output_folder(out)?;
-    }
-    if path.exists() && !replace {
-        return Err(HostError::invalid(
-            path,
-            "holds the checkpoint of an earlier stream; continue it with --resume, or replace it with --force",
-        ));
-    }
-    if path.is_dir() {
-        return Err(HostError::invalid(
-            path,
-            "is a folder; the stream's checkpoint cannot be written there",
-        ));
-    }
-    Ok(())
 }
 
 /// The anytime curve as CSV.

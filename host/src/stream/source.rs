@@ -158,9 +158,9 @@ fn canonical(path: &Path) -> PathBuf {
 const SYNTHETIC_BACKGROUND: [f32; 3] = [1.0; 3];
 
 impl DatasetSource {
-    /// Open `path` (a folder or a label / transforms file); `width` resizes SPEED+ frames to
-    /// that width and NeRF-synthetic frames to that longer side.
-    pub fn open(path: &Path, width: Option<u32>, rate: Option<f64>) -> Result<DatasetSource> {
+    /// Open `path` (a folder or a label / transforms file); `max_side` resizes frames to that
+    /// longer side (never upsampling).
+    pub fn open(path: &Path, max_side: Option<u32>, rate: Option<f64>) -> Result<DatasetSource> {
         let name = path.display().to_string();
         if let Some(rate) = rate.filter(|r| !RATE_RANGE.contains(r)) {
             return Err(HostError::invalid(
@@ -185,7 +185,7 @@ impl DatasetSource {
         let (reader, info) = match transforms {
             Some(json) => {
                 let options = transforms::LoadOptions {
-                    size: width.map_or(OutputSize::Original, OutputSize::MaxSide),
+                    size: max_side.map_or(OutputSize::Original, OutputSize::MaxSide),
                     background: SYNTHETIC_BACKGROUND,
                 };
                 let reader = SyntheticReader::open(&json, &options)?;
@@ -204,7 +204,7 @@ impl DatasetSource {
             }
             None => {
                 let options = LoadOptions {
-                    width,
+                    max_side,
                     domain: None,
                 };
                 let reader = SpeedPlusReader::open(path, &options)?;
@@ -392,11 +392,12 @@ pub struct WatchedFolder {
 }
 
 impl WatchedFolder {
-    /// Open `dir` (its `camera.json` must be there), resizing frames to `width`. The scene box
-    /// is known only when the folder has a simulator `truth.json`.
-    pub fn open(dir: &Path, width: Option<u32>, options: WatchOptions) -> Result<WatchedFolder> {
+    /// Open `dir` (its `camera.json` must be there), resizing frames to the longer side
+    /// `max_side` (never upsampling). The scene box is known only when the folder has a
+    /// simulator `truth.json`.
+    pub fn open(dir: &Path, max_side: Option<u32>, options: WatchOptions) -> Result<WatchedFolder> {
         let camera = SpeedCamera::read(&dir.join("camera.json"))?;
-        let decoder = FrameDecoder::new(camera, width);
+        let decoder = FrameDecoder::new(camera, max_side);
         let truth = dir.join("truth.json");
         let scene_box = if truth.is_file() {
             let truth = speedplus::Truth::read(&truth)?;

@@ -63,6 +63,14 @@ impl<'a> Trainer<'a> {
         with_section_table!(save, self)
     }
 
+    /// The first section holding a non-finite parameter, moment or density, with the
+    /// element's index: a diverged model that must not be saved or scored.
+    pub fn first_non_finite_section(&self) -> Option<(&'static str, usize)> {
+        self.sections()
+            .into_iter()
+            .find_map(|(name, data)| first_non_finite(name, data).map(|index| (name, index)))
+    }
+
     /// Restore one section written by `sections` for the same config. The size must match.
     pub fn restore_section(&mut self, name: &str, data: &[u8]) -> Result<(), Error> {
         macro_rules! find {

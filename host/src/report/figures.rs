@@ -1,0 +1,107 @@
+//! `metrics.json`: the figures a command reports, for scripts. One schema for `train`, `eval`,
+//! `ablate`, `demo` and `stream`, built here: each model's mean over the held-out views (as
+//! [`super::mean_metrics`] gives it, the numbers the printed and markdown tables show), each
+//! view, and how the model trained. A value that is not a number (NaN: no SSIM window, no
+//! JNB edge block, no mask; or an infinite PSNR) is written as `null`.
+
+use super::ViewMetrics;
+use crate::error::{HostError, Result};
+use serde::Serialize;
+use std::path::Path;
+
+/// Version of the layout below; raised when a field changes meaning or goes away.
+pub const FIGURES_SCHEMA: u32 = 1;
+
+/// The contents of `metrics.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct Figures {
+    pub schema: u32,
+    /// The command that wrote it (`train`, `eval`, `ablate`, `demo`, `stream`).
+    pub command: String,
+    pub models: Vec<ModelFigures>,
+}
+
+/// One model: its mean over the held-out views, each view, and its training when known.
+#[derive(Clone, Debug, Serialize)]
+pub struct ModelFigures {
+    pub name: String,
+    pub mean: ViewMetrics,
+    pub views: Vec<ViewFigures>,
+    pub training: Option<TrainingFigures>,
+}
+
+/// One held-out view's metrics, its mean samples per ray and seconds (fit and render).
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewFigures {
+    pub index: usize,
+    pub name: String,
+    #[serde(flatten)]
+    pub metrics: ViewMetrics,
+    pub samples_per_ray: f64,
+    pub seconds: f64,
+}
+
+/// How a model trained.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct TrainingFigures {
+    pub steps: u64,
+    pub steps_skipped: u64,
+    pub seconds: f64,
+    /// Mean samples per training ray (after early ray termination).
+    pub samples_per_ray: f64,
+}
+
+impl Figures {
+    pub fn new(command: &str, models: Vec<ModelFigures>) -> Figures {
+        Figures {
+            schema: FIGURES_SCHEMA,
+            command: command.to_owned(),
+            models,
+        }
+    }
+
+    /// Write as `dir/metrics.json`, atomically.
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        let path = dir.join("metrics.json");
+        let text = serde_json::to_vec_pretty(self)
+            .map_err(|e| HostError::invalid(&path, format!("JSON encoding failed: {e}")))?;
+        crate::io::write_atomic(&path, &text)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn not_a_number_is_written_as_null() {
+        let metrics = ViewMetrics {
+            psnr_right: 30.5,
+            ssim_right: f64::NAN,
+            jnb_right: 1.0,
+            psnr_full: f64::INFINITY,
+            ssim_full: 0.9,
+            jnb_full: 2.0,
+            psnr_foreground: f64::NAN,
+            psnr_foreground_right: 3.0,
+        };
+        let figures = Figures::new(
+            "eval",
+            vec![ModelFigures {
+                name: "model".into(),
+                mean: metrics,
+                views: vec![],
+                training: None,
+            }],
+        );
+        let dir = tempfile::tempdir().unwrap();
+        figures.write(dir.path()).unwrap();
+        let text = std::fs::read_to_string(dir.path().join("metrics.json")).unwrap();
+        let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let mean = &value["models"][0]["mean"];
+        assert_eq!(mean["psnr_right"], 30.5);
+        assert!(mean["ssim_right"].is_null() && mean["psnr_full"].is_null());
+        assert_eq!(value["schema"], FIGURES_SCHEMA);
+        assert_eq!(value["command"], "eval");
+    }
+}
