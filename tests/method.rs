@@ -148,6 +148,23 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
         assert!(report.contains(model), "{model} missing from:\n{report}");
     }
     assert!(report.contains("Pose error"), "{report}");
+    // The geometry table: every model's surface against the simulated target, a Chamfer
+    // distance in mm or the reason there is none.
+    let geometry = report
+        .split("Chamfer distance to the true shape")
+        .nth(1)
+        .expect("the geometry section");
+    for model in ["| baseline ", "| ours  ", "| ours + pose "] {
+        let row = geometry
+            .lines()
+            .find(|l| l.starts_with(model))
+            .expect(model);
+        let cell = row.split('|').map(str::trim).nth(2).unwrap();
+        assert!(
+            cell.parse::<f64>().is_ok() || cell.starts_with("n/a ("),
+            "{row}"
+        );
+    }
     // The simulator writes masks: they are applied, and every model has a foreground PSNR.
     let header: Vec<&str> = report
         .lines()

@@ -5,6 +5,7 @@
 
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};
+use crate::geometry::{self, Chamfer, Mesh, SurfaceOptions, Triangle};
 use crate::report::{self, PoseErrors, ViewMetrics};
 use crate::train::{self, RayonExecutor};
 use orbit_nerf_core::glam::{Mat3, Vec3};
@@ -50,6 +51,42 @@ pub struct VariantResult {
     /// against the exact poses (when the dataset has them).
     pub pose_before: Option<PoseErrors>,
     pub pose_after: Option<PoseErrors>,
+    /// The field's surface (`geometry::extract_surface` with the default options and the
+    /// mean training embedding), or why there is none.
+    pub surface: Result<Mesh>,
+}
+
+/// A model's surface against the true shape: its size and the Chamfer distance, or why
+/// there is none.
+pub struct GeometryRow {
+    pub name: String,
+    pub vertices: usize,
+    pub triangles: usize,
+    pub chamfer: std::result::Result<Chamfer, String>,
+}
+
+/// `result`'s surface scored against the true surface `truth` (the Chamfer distance with
+/// [`geometry::chamfer::DEFAULT_SAMPLES`] points on each).
+pub fn geometry_row(result: &VariantResult, truth: &[Triangle]) -> GeometryRow {
+    let (vertices, triangles, chamfer) = match &result.surface {
+        Ok(mesh) => (
+            mesh.positions.len(),
+            mesh.triangles.len(),
+            geometry::chamfer_distance(
+                &mesh.triangle_corners(),
+                truth,
+                geometry::chamfer::DEFAULT_SAMPLES,
+            )
+            .ok_or_else(|| "a surface without area".to_string()),
+        ),
+        Err(e) => (0, 0, Err(e.to_string())),
+    };
+    GeometryRow {
+        name: result.variant.name.to_string(),
+        vertices,
+        triangles,
+        chamfer,
+    }
 }
 
 /// The pose a frame's label becomes with its learned correction: rays start at the corrected
@@ -101,6 +138,16 @@ pub fn run_variant(
     let train_seconds = start.elapsed().as_secs_f64();
     let scores = train::evaluate(&mut trainer, &executor, dataset, test_idx, fit_steps, None)?;
     let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+    let mut mean = vec![0.0f32; config.embedding_dim as usize];
+    trainer.mean_embedding(&mut mean);
+    let surface = geometry::extract_surface(
+        &mut trainer,
+        &executor,
+        &mean,
+        &SurfaceOptions::default(),
+        &dataset.source,
+        crate::memory::limit_or_default(None),
+    );
     let (pose_before, pose_after) = match truth {
         Some(truth) => {
             let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
@@ -136,6 +183,7 @@ pub fn run_variant(
         renders: scores.into_iter().map(|s| s.render).collect(),
         pose_before,
         pose_after,
+        surface,
     })
 }
 
