@@ -80,6 +80,13 @@ impl Grid {
     fn world(&self, p: [f32; 3]) -> [f32; 3] {
         [0, 1, 2].map(|a| self.min[a] + (p[a] - 1.0) * self.spacing)
     }
+
+    /// A vertex's world position, within the box `min`..`max`: where the surface closes
+    /// against the empty outer layer it is cut at the box's faces.
+    fn vertex(&self, p: [f32; 3], max: [f32; 3]) -> [f32; 3] {
+        let w = self.world(p);
+        [0, 1, 2].map(|a| w[a].clamp(self.min[a], max[a]))
+    }
 }
 
 /// Bytes of grid `extract_surface` allocates for `options` over the box `min`..`max`: the
@@ -95,6 +102,7 @@ pub fn grid_bytes(min: [f32; 3], max: [f32; 3], options: &SurfaceOptions) -> u64
 /// (appearance `embedding`) on a ray that starts two grid steps outside the surface along the
 /// normal and looks back along it, i.e. the surface seen head-on from outside. `file` names
 /// the checkpoint in errors; `limit` is the memory limit the grid is checked against first.
+/// The surface is closed at the box: where the field is dense at a face, it is cut there.
 /// Fails when no surface crosses the threshold, saying what the densities were.
 pub fn extract_surface<E: Executor>(
     trainer: &mut Trainer<'_>,
@@ -188,7 +196,9 @@ pub fn extract_surface<E: Executor>(
             }
         })
         .collect();
-    let positions: Vec<[f32; 3]> = nets.positions.iter().map(|&p| grid.world(p)).collect();
+    let positions: Vec<[f32; 3]> = (nets.positions.iter())
+        .map(|&p| grid.vertex(p, c.aabb_max))
+        .collect();
     let colours = vertex_colours(
         trainer,
         executor,
