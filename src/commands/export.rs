@@ -33,12 +33,12 @@ pub struct ExportArgs {
     out: PathBuf,
     /// Grid samples along the longest side of the scene box (8 to 2048; cubic voxels).
     #[arg(long, default_value_t = geometry::extract::DEFAULT_RESOLUTION,
-          value_parser = parse_resolution)]
+          value_parser = parse_resolution, allow_hyphen_values = true)]
     resolution: u32,
     /// The density (sigma, per world unit of length) the surface passes through. Default:
     /// ln 2 / the model's marching step (box diagonal / march_steps), i.e. where one marching
     /// step becomes half opaque; lower it for a fuller surface, raise it for a tighter one.
-    #[arg(long, value_parser = parse_threshold)]
+    #[arg(long, value_parser = parse_threshold, allow_hyphen_values = true)]
     threshold: Option<f32>,
     /// Also write a picture of the mesh to this PNG (orthographic, 512 px, seen from
     /// --preview-from towards the box centre, shaded vertex colours).

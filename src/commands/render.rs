@@ -25,7 +25,7 @@ pub struct RenderArgs {
     /// Render N new views instead, on a circle about the dataset cameras' mean up through the
     /// scene box centre, at their mean distance from it, with the first view's intrinsics:
     /// orbit_0000.png ... and orbit.gif in --out (and orbit.mp4 when ffmpeg is on the PATH).
-    #[arg(long, value_parser = parse_orbit, conflicts_with = "path")]
+    #[arg(long, value_parser = parse_orbit, conflicts_with = "path", allow_hyphen_values = true)]
     orbit: Option<usize>,
     /// Elevation of the orbit above the plane normal to the mean up, degrees (-89 to 89);
     /// default: the dataset cameras' mean elevation.
