@@ -5,7 +5,7 @@
 mod commands;
 
 use clap::{Parser, Subcommand};
-use commands::{ablate, bench, demo, eval, render, simulate, stream, sweep, train};
+use commands::{ablate, bench, demo, eval, export, render, simulate, stream, sweep, train};
 
 #[derive(Parser)]
 #[command(name = "orbit-nerf", version, about)]
@@ -20,8 +20,12 @@ enum Command {
     Train(train::TrainArgs),
     /// Score held-out views of a dataset with a checkpoint (PSNR per view and the mean).
     Eval(eval::EvalArgs),
-    /// Render views of a dataset's cameras with a checkpoint to PNG.
+    /// Render views of a dataset's cameras with a checkpoint to PNG, or an orbit around the
+    /// target (or a path file) to PNG frames and an animated GIF.
     Render(render::RenderArgs),
+    /// Export the trained field's geometry: a coloured mesh (PLY, OBJ) or point cloud (PLY).
+    #[command(subcommand)]
+    Export(export::ExportCommand),
     /// Measure training throughput (samples/s, rays/s) on a fixed scene and seed.
     Bench(bench::BenchArgs),
     /// The built-in default: simulate the lightbox preset, train the method, evaluate, report.
@@ -43,6 +47,7 @@ fn main() {
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::Export(command) => export::run(&command),
         Command::Bench(args) => bench::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Simulate(args) => simulate::run(&args),

@@ -506,11 +506,21 @@ fn a_training_step_allocates_nothing() {
     trainer
         .render(&Sequential, &frame.camera, &frame.pose, &[], &mut image)
         .unwrap();
+    let points = [[0.1f32, -0.2, 0.3]; 100];
+    let mut sigma = [0.0f32; 100];
+    trainer
+        .density_at(&Sequential, &points, &mut sigma)
+        .unwrap();
+    let mut colours = [0.0f32; 300];
+    let directions = [[0.0f32, 0.0, -1.0]; 100];
+    trainer
+        .render_rays(&Sequential, &points, &directions, &[], &mut colours)
+        .unwrap();
     ARMED.with(|a| a.set(false));
     assert_eq!(
         ALLOCATIONS.load(Ordering::SeqCst),
         0,
-        "the core allocated during steps or rendering"
+        "the core allocated during steps, rendering or point queries"
     );
     assert!(
         trainer.state().refreshes >= 2,

@@ -148,6 +148,23 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
         assert!(report.contains(model), "{model} missing from:\n{report}");
     }
     assert!(report.contains("Pose error"), "{report}");
+    // The geometry table: every model's surface against the simulated target, a Chamfer
+    // distance in mm or the reason there is none.
+    let geometry = report
+        .split("Chamfer distance to the true shape")
+        .nth(1)
+        .expect("the geometry section");
+    for model in ["| baseline ", "| ours  ", "| ours + pose "] {
+        let row = geometry
+            .lines()
+            .find(|l| l.starts_with(model))
+            .expect(model);
+        let cell = row.split('|').map(str::trim).nth(2).unwrap();
+        assert!(
+            cell.parse::<f64>().is_ok() || cell.starts_with("n/a ("),
+            "{row}"
+        );
+    }
     // The simulator writes masks: they are applied, and every model has a foreground PSNR.
     let header: Vec<&str> = report
         .lines()
@@ -160,7 +177,9 @@ fn ablate_writes_the_three_model_table_pose_errors_and_comparisons() {
         .iter()
         .position(|h| *h == "fg PSNR")
         .expect("fg PSNR column");
-    for line in report.lines().filter(|l| l.starts_with("| ours")) {
+    // The model table's rows (the first section; later tables have other columns).
+    let models = report.split("\n## ").next().unwrap();
+    for line in models.lines().filter(|l| l.starts_with("| ours")) {
         let cell = line.split('|').map(str::trim).nth(fg).unwrap();
         assert!(cell.parse::<f64>().is_ok_and(f64::is_finite), "{line}");
     }

@@ -5,6 +5,7 @@
 
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};
+use crate::geometry::{self, Chamfer, Mesh, SurfaceOptions, Triangle};
 use crate::report::{self, ModelFigures, PoseErrors, TrainingFigures, ViewFigures, ViewMetrics};
 use crate::train::{self, RayonExecutor};
 use orbit_nerf_core::glam::{Mat3, Vec3};
@@ -53,6 +54,9 @@ pub struct VariantResult {
     /// Each held-out view's figures, in `test` order.
     pub views: Vec<ViewFigures>,
     pub training: TrainingFigures,
+    /// The field's surface (`geometry::extract_surface` with the default options and the
+    /// mean training embedding), or why there is none.
+    pub surface: Result<Mesh>,
 }
 
 impl VariantResult {
@@ -77,6 +81,39 @@ pub struct Experiment<'a> {
     pub threads: usize,
     /// Steps fitting each held-out view's embedding on its left half.
     pub fit_steps: u32,
+}
+
+/// A model's surface against the true shape: its size and the Chamfer distance, or why
+/// there is none.
+pub struct GeometryRow {
+    pub name: String,
+    pub vertices: usize,
+    pub triangles: usize,
+    pub chamfer: std::result::Result<Chamfer, String>,
+}
+
+/// `result`'s surface scored against the true surface `truth` (the Chamfer distance with
+/// [`geometry::chamfer::DEFAULT_SAMPLES`] points on each).
+pub fn geometry_row(result: &VariantResult, truth: &[Triangle]) -> GeometryRow {
+    let (vertices, triangles, chamfer) = match &result.surface {
+        Ok(mesh) => (
+            mesh.positions.len(),
+            mesh.triangles.len(),
+            geometry::chamfer_distance(
+                &mesh.triangle_corners(),
+                truth,
+                geometry::chamfer::DEFAULT_SAMPLES,
+            )
+            .ok_or_else(|| "a surface without area".to_string()),
+        ),
+        Err(e) => (0, 0, Err(e.to_string())),
+    };
+    GeometryRow {
+        name: result.variant.name.to_string(),
+        vertices,
+        triangles,
+        chamfer,
+    }
 }
 
 /// The pose a frame's label becomes with its learned correction: rays start at the corrected
@@ -178,6 +215,16 @@ impl Experiment<'_> {
             None,
         )?;
         let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+        let mut mean = vec![0.0f32; config.embedding_dim as usize];
+        trainer.mean_embedding(&mut mean);
+        let surface = geometry::extract_surface(
+            &mut trainer,
+            &executor,
+            &mean,
+            &SurfaceOptions::default(),
+            &dataset.source,
+            crate::memory::limit_or_default(None),
+        );
         let (pose_before, pose_after) = match self.truth {
             Some(truth) => {
                 let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
@@ -219,6 +266,7 @@ impl Experiment<'_> {
             pose_before,
             pose_after,
             training,
+            surface,
         })
     }
 }

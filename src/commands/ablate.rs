@@ -8,6 +8,7 @@ use orbit_nerf_host::ablation::{
 };
 use orbit_nerf_host::dataset::{Dataset, split_every};
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
+use orbit_nerf_host::geometry::{self, Triangle};
 use orbit_nerf_host::report::{self, ModelOutcome, ModelRow, NoiseLevelResult};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
 use orbit_nerf_host::sweep::{NoiseLevels, SweepDescription};
@@ -105,6 +106,29 @@ pub fn simulated(
     }
     sim::simulate(&scene, out, &|| {})?;
     load(out, size, masks)
+}
+
+/// The true surface of a simulated scene: the target's triangles in metres, in its body
+/// frame, which is the world frame of the dataset the simulator writes.
+pub fn true_surface(scene: &str) -> Fallible<Vec<Triangle>> {
+    Ok(sim::Target::build(&Scene::load(scene)?)?.surface())
+}
+
+/// The report's geometry section: each model's surface against the true one.
+pub fn geometry_section(results: &[&VariantResult], truth: &[Triangle]) -> String {
+    let rows: Vec<_> = results
+        .iter()
+        .map(|r| ablation::geometry_row(r, truth))
+        .collect();
+    format!(
+        "\n## Geometry: Chamfer distance to the true shape\n\nEach field's surface at the default \
+         density threshold on a {}-sample grid (as `orbit-nerf export mesh` writes it) against the \
+         simulated target's mesh: {} points drawn uniformly by area on each, each point's \
+         distance to the nearest point drawn on the other, both directions pooled.\n\n{}",
+        geometry::extract::DEFAULT_RESOLUTION,
+        geometry::chamfer::DEFAULT_SAMPLES,
+        report::geometry_table(&rows)
+    )
 }
 
 /// Load a SPEED+ folder with its exact poses (when it has `truth.json`), its masks applied
@@ -225,6 +249,11 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             "\n## Pose error of the training labels against the exact poses\n"
         )?;
         writeln!(text, "{}", report::pose_error_table(&pose_rows))?;
+    }
+    if args.data.is_none() {
+        let truth = true_surface(&args.scene)?;
+        let all: Vec<&VariantResult> = results.iter().collect();
+        text.push_str(&geometry_section(&all, &truth));
     }
     writeln!(text, "\n## Renders (truth, baseline, ours, ours + pose)\n")?;
     for (k, &index) in test_idx.iter().enumerate().take(4) {

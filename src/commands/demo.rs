@@ -1,7 +1,7 @@
 //! `orbit-nerf demo`: the built-in default. Simulate the lightbox preset, train the method,
 //! evaluate and write a report.
 
-use super::ablate::simulated;
+use super::ablate::{geometry_section, simulated, true_surface};
 use super::train::TRAIN_BAR;
 use super::{CliResult, FIT_STEPS, RunningPsnr, bar_style};
 use clap::Args;
@@ -95,6 +95,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
             after,
         )]));
     }
+    text.push_str(&geometry_section(&[&result], &true_surface("lightbox")?));
     text.push_str("\n## Held-out views (truth, render)\n\n");
     for (k, &index) in test_idx.iter().enumerate().take(4) {
         let frame = &dataset.frames[index];

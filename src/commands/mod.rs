@@ -5,6 +5,7 @@ pub mod ablate;
 pub mod bench;
 pub mod demo;
 pub mod eval;
+pub mod export;
 pub mod render;
 pub mod simulate;
 pub mod stream;
@@ -272,13 +273,20 @@ fn evaluate_checkpoint(
     renders: Option<&Path>,
 ) -> Fallible<Vec<ViewScore>> {
     let executor = RayonExecutor::new(threads)?;
+    with_checkpoint(path, |trainer| {
+        Ok(evaluate(
+            trainer, &executor, dataset, views, fit_steps, renders,
+        )?)
+    })
+}
+
+/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config).
+fn with_checkpoint<R>(path: &Path, f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>) -> Fallible<R> {
     let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
     let config = checkpoint_config(path, &checkpoint)?;
     with_trainer(config, None, &[], |trainer| {
         restore_checkpoint(path, &checkpoint, trainer)?;
-        Ok(evaluate(
-            trainer, &executor, dataset, views, fit_steps, renders,
-        )?)
+        f(trainer)
     })
 }
 

@@ -26,7 +26,9 @@ pub use poses::{
     PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,
 };
 pub use strip::side_by_side;
-pub use tables::{ModelRow, ablation_table, format_or_na, markdown_table, pose_error_table};
+pub use tables::{
+    ModelRow, ablation_table, format_or_na, geometry_table, markdown_table, pose_error_table,
+};
 pub use views::{ViewMetrics, mean_metrics, score_view};
 
 /// Arithmetic mean; NaN for an empty slice.

@@ -143,6 +143,39 @@ pub fn format_or_na(value: f64, decimals: usize) -> String {
     }
 }
 
+/// The geometry table: per model its surface's size and the symmetric Chamfer distance to
+/// the true shape in millimetres (mean, 95th percentile; `geometry::chamfer`), or why there is
+/// none.
+pub fn geometry_table(rows: &[crate::ablation::GeometryRow]) -> String {
+    let header = [
+        "model",
+        "Chamfer mean mm",
+        "Chamfer p95 mm",
+        "vertices",
+        "triangles",
+    ];
+    let rows: Vec<Vec<String>> = rows
+        .iter()
+        .map(|r| {
+            let (mean, p95) = match &r.chamfer {
+                Ok(c) => (
+                    format!("{:.1}", c.mean * 1000.0),
+                    format!("{:.1}", c.p95 * 1000.0),
+                ),
+                Err(why) => (format!("n/a ({why})"), "n/a".into()),
+            };
+            vec![
+                r.name.clone(),
+                mean,
+                p95,
+                r.vertices.to_string(),
+                r.triangles.to_string(),
+            ]
+        })
+        .collect();
+    markdown_table(&header, &rows)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

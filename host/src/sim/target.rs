@@ -212,6 +212,15 @@ impl Target {
         })
     }
 
+    /// The target's surface: every triangle's corners (metres, body frame: the frame the
+    /// simulated datasets' poses, and so a field trained on them, use).
+    pub fn surface(&self) -> Vec<[[f32; 3]; 3]> {
+        self.triangles
+            .iter()
+            .map(|t| [t.v0, t.v0 + t.e1, t.v0 + t.e2].map(|p| p.to_array()))
+            .collect()
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.triangles.len()
     }

@@ -271,6 +271,22 @@ impl Chunk<'_> {
         }
     }
 
+    /// Density of each of `points` into `sigma` (the same field as the density pass).
+    pub(super) fn densities(
+        &mut self,
+        shared: &Shared<'_>,
+        points: &[[f32; 3]],
+        sigma: &mut [f32],
+    ) {
+        for (points, sigma) in points.chunks(LANES).zip(sigma.chunks_mut(LANES)) {
+            let mut rows = split_rows(shared.config, self.activations);
+            density_forward(shared, points, &mut rows, self.plane_values);
+            for (l, s) in sigma.iter_mut().enumerate() {
+                *s = field::trunc_exp(rows.density_out[0][l]);
+            }
+        }
+    }
+
     /// Update the running density of `cells` (starting at cell index `first_cell`).
     pub(super) fn refresh_cells(
         &mut self,

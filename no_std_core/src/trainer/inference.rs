@@ -3,6 +3,9 @@
 
 use super::*;
 
+/// One chunk's share of a density query: its points, their outputs and the chunk.
+type DensityJob<'q, 'a> = (&'q [[f32; 3]], &'q mut [f32], &'q mut Chunk<'a>);
+
 /// Adam learning rate of `fit_embedding` (only a few dozen steps, on one vector).
 const FIT_LEARNING_RATE: f32 = 0.05;
 
@@ -102,10 +105,91 @@ impl<'a> Trainer<'a> {
         embedding: &[f32],
         out: &mut [f32],
     ) -> Result<f32, Error> {
-        let c = self.config;
         if !camera.is_valid() || !pose.is_finite() {
             return Err(Error::InvalidFrame { field: "camera" });
         }
+        let width = camera.width as u32;
+        self.render_with(executor, camera.pixel_count(), embedding, out, |p| {
+            Self::pixel_ray(camera, pose, p as u32 % width, p as u32 / width)
+        })
+    }
+
+    /// Render arbitrary rays (world frame) with a given appearance embedding into `out` (RGB
+    /// f32, one triple per ray): the same marching and compositing as [`Trainer::render`].
+    /// Directions are normalised here; a ray with a zero or non-finite direction or origin
+    /// misses the box and gets the background colour. Returns the mean samples per ray.
+    pub fn render_rays<E: Executor>(
+        &mut self,
+        executor: &E,
+        origins: &[[f32; 3]],
+        directions: &[[f32; 3]],
+        embedding: &[f32],
+        out: &mut [f32],
+    ) -> Result<f32, Error> {
+        if directions.len() != origins.len() {
+            return Err(Error::BufferSize {
+                what: "directions",
+                expected: origins.len(),
+                got: directions.len(),
+            });
+        }
+        self.render_with(executor, origins.len(), embedding, out, |r| {
+            let d = Vec3::from_array(directions[r]);
+            let length = libm::sqrtf(d.length_squared());
+            let d = if length > 0.0 && length.is_finite() {
+                d * (1.0 / length)
+            } else {
+                Vec3::splat(f32::NAN)
+            };
+            (Vec3::from_array(origins[r]), d)
+        })
+    }
+
+    /// Density (the field's `sigma`, per world unit of length, as the renderer composites it)
+    /// at each of `positions` (world frame) into `out`: no marching, no occupancy grid, no
+    /// colour. Points outside the scene box read the box's edge texels; a non-finite point
+    /// reads texels inside the box. Allocation-free; the chunks share the points out.
+    pub fn density_at<E: Executor>(
+        &mut self,
+        executor: &E,
+        positions: &[[f32; 3]],
+        out: &mut [f32],
+    ) -> Result<(), Error> {
+        if out.len() != positions.len() {
+            return Err(Error::BufferSize {
+                what: "out",
+                expected: positions.len(),
+                got: out.len(),
+            });
+        }
+        let pass = Pass::Render { embedding: &[] };
+        self.with_chunks(pass, 0, |shared, chunks| {
+            let per_chunk = positions.len().div_ceil(chunks.len()).max(1);
+            let mut jobs: heapless::Vec<DensityJob<'_, 'a>, MAX_CHUNKS> = heapless::Vec::new();
+            for ((points, sigma), chunk) in positions
+                .chunks(per_chunk)
+                .zip(out.chunks_mut(per_chunk))
+                .zip(chunks.iter_mut())
+            {
+                let _ = jobs.push((points, sigma, chunk));
+            }
+            executor.for_each(&mut jobs, |(points, sigma, chunk)| {
+                chunk.densities(shared, points, sigma)
+            });
+        });
+        Ok(())
+    }
+
+    /// Render `count` rays, ray `r` given by `ray(r)` (origin, unit direction), into `out`.
+    fn render_with<E: Executor>(
+        &mut self,
+        executor: &E,
+        count_all: usize,
+        embedding: &[f32],
+        out: &mut [f32],
+        ray: impl Fn(usize) -> (Vec3, Vec3),
+    ) -> Result<f32, Error> {
+        let c = self.config;
         if embedding.len() != c.embedding_dim as usize {
             return Err(Error::BufferSize {
                 what: "embedding",
@@ -113,26 +197,19 @@ impl<'a> Trainer<'a> {
                 got: embedding.len(),
             });
         }
-        let pixels = camera.pixel_count();
-        if out.len() != pixels * 3 {
+        if out.len() != count_all * 3 {
             return Err(Error::BufferSize {
                 what: "out",
-                expected: pixels * 3,
+                expected: count_all * 3,
                 got: out.len(),
             });
         }
         let batch = c.rays_per_batch as usize;
         let mut samples = 0u64;
-        for first in (0..pixels).step_by(batch) {
-            let count = batch.min(pixels - first);
+        for first in (0..count_all).step_by(batch) {
+            let count = batch.min(count_all - first);
             for r in 0..count {
-                let p = (first + r) as u32;
-                let (o, d) = Self::pixel_ray(
-                    camera,
-                    pose,
-                    p % camera.width as u32,
-                    p / camera.width as u32,
-                );
+                let (o, d) = ray(first + r);
                 self.rays[r].origin = o.to_array();
                 self.rays[r].direction = d.to_array();
             }
@@ -152,6 +229,6 @@ impl<'a> Trainer<'a> {
                     .sum::<u64>()
             });
         }
-        Ok(samples as f32 / pixels as f32)
+        Ok(samples as f32 / count_all.max(1) as f32)
     }
 }

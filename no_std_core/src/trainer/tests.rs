@@ -245,3 +245,64 @@ fn a_checkpoint_section_with_a_nan_or_an_infinity_is_refused() {
         );
     }
 }
+
+#[test]
+fn point_queries_agree_with_rendering_and_do_not_depend_on_the_partition() {
+    let config = small_config();
+    let mut arena = [0u8; 1 << 20];
+    let arena = &mut arena[..MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, arena).unwrap();
+    put_test_frame(&mut trainer);
+    for _ in 0..3 {
+        trainer.step(&Sequential).unwrap();
+    }
+    // Rays given one by one render exactly what the camera's pixel rays render.
+    let (camera, pose) = (test_camera(), trainer.frames.meta[0].pose());
+    let pixels = camera.pixel_count();
+    let mut image = [0.0f32; 64 * 3];
+    trainer
+        .render(&Sequential, &camera, &pose, &[0.0; 4], &mut image)
+        .unwrap();
+    let (mut origins, mut directions) = ([[0.0f32; 3]; 64], [[0.0f32; 3]; 64]);
+    for p in 0..pixels {
+        let (o, d) = Trainer::pixel_ray(&camera, &pose, p as u32 % 8, p as u32 / 8);
+        origins[p] = o.to_array();
+        // Not unit length: render_rays normalises.
+        directions[p] = (d * 3.0).to_array();
+    }
+    let mut rays = [0.0f32; 64 * 3];
+    trainer
+        .render_rays(&Sequential, &origins, &directions, &[0.0; 4], &mut rays)
+        .unwrap();
+    let close = image.iter().zip(&rays).all(|(a, b)| (a - b).abs() < 1e-6);
+    assert!(close, "{image:?} vs {rays:?}");
+    // A zero direction misses the box: background, no panic.
+    directions[0] = [0.0; 3];
+    trainer
+        .render_rays(&Sequential, &origins, &directions, &[0.0; 4], &mut rays)
+        .unwrap();
+    assert_eq!(&rays[..3], &config.background);
+    // Densities: positive and finite, the same whether asked for all at once or one by one
+    // (each chunk takes a different share), and wrong lengths are errors.
+    let mut points = [[0.0f32; 3]; 100];
+    for (i, p) in points.iter_mut().enumerate() {
+        let t = i as f32 / 99.0;
+        *p = [-1.2 + 2.4 * t, 0.7 - 1.3 * t, 0.3 * t];
+    }
+    points[7] = [f32::NAN, 0.0, f32::INFINITY];
+    let mut all = [0.0f32; 100];
+    trainer.density_at(&Sequential, &points, &mut all).unwrap();
+    for (p, sigma) in points.iter().zip(&all) {
+        let mut one = [0.0f32];
+        trainer
+            .density_at(&Sequential, core::slice::from_ref(p), &mut one)
+            .unwrap();
+        assert_eq!(one[0].to_bits(), sigma.to_bits());
+        assert!(sigma.is_finite() && *sigma >= 0.0, "{sigma}");
+    }
+    assert!(all.iter().any(|s| *s != all[0]));
+    assert!(matches!(
+        trainer.density_at(&Sequential, &points, &mut all[..99]),
+        Err(Error::BufferSize { .. })
+    ));
+}

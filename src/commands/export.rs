@@ -1,0 +1,196 @@
+//! `orbit-nerf export`: the trained field's geometry as files other tools read: the surface
+//! of its density as a coloured mesh (PLY or OBJ), or as a coloured point cloud (PLY).
+
+use super::{CliResult, with_checkpoint};
+use clap::{Args, Subcommand};
+use orbit_nerf_core::glam::Vec3;
+use orbit_nerf_host::geometry::{self, Mesh, SurfaceOptions, files};
+use orbit_nerf_host::train::RayonExecutor;
+use orbit_nerf_host::{memory, values};
+use std::path::{Path, PathBuf};
+
+/// Side of the --preview picture in pixels.
+const PREVIEW_SIZE: u32 = 512;
+
+#[derive(Subcommand)]
+pub enum ExportCommand {
+    /// The surface where the field's density crosses the threshold, inside the checkpoint's
+    /// scene box (Naive Surface Nets on a regular grid), as a triangle mesh with per-vertex
+    /// normals and colours; the format follows the extension of --out: .ply (binary) or .obj.
+    Mesh(ExportArgs),
+    /// The same surface's vertices (one per grid cell the surface crosses) with normals and
+    /// colours, as a PLY point cloud.
+    Points(ExportArgs),
+}
+
+#[derive(Args)]
+pub struct ExportArgs {
+    /// Checkpoint written by `train`, `stream` or `ablate`.
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// Output file (.ply, or .obj for a mesh).
+    #[arg(long)]
+    out: PathBuf,
+    /// Grid samples along the longest side of the scene box (8 to 2048; cubic voxels).
+    #[arg(long, default_value_t = geometry::extract::DEFAULT_RESOLUTION,
+          value_parser = parse_resolution, allow_hyphen_values = true)]
+    resolution: u32,
+    /// The density (sigma, per world unit of length) the surface passes through. Default:
+    /// ln 2 / the model's marching step (box diagonal / march_steps), i.e. where one marching
+    /// step becomes half opaque; lower it for a fuller surface, raise it for a tighter one.
+    #[arg(long, value_parser = parse_threshold, allow_hyphen_values = true)]
+    threshold: Option<f32>,
+    /// Also write a picture of the mesh to this PNG (orthographic, 512 px, seen from
+    /// --preview-from towards the box centre, shaded vertex colours).
+    #[arg(long)]
+    preview: Option<PathBuf>,
+    /// Direction from the centre to the preview's viewer, x,y,z (world axes).
+    #[arg(long, default_value = "1,-1,0.8", value_parser = parse_direction, allow_hyphen_values = true)]
+    preview_from: [f32; 3],
+    /// The preview's up direction, x,y,z (world axes).
+    #[arg(long, default_value = "0,0,1", value_parser = parse_direction, allow_hyphen_values = true)]
+    preview_up: [f32; 3],
+    /// Score the surface against a simulated scene's true shape (a preset such as lightbox,
+    /// or a scene file): prints the symmetric Chamfer distance (mean, 95th percentile).
+    #[arg(long)]
+    chamfer_against: Option<String>,
+    /// Replace --out (and --preview) if it exists.
+    #[arg(long)]
+    force: bool,
+    /// Memory the density grid may take (K/M/G/T suffixes); default: 80 % of the available.
+    #[arg(long, value_parser = values::byte_size)]
+    memory_limit: Option<u64>,
+    /// Worker threads (results do not depend on it).
+    #[arg(long, default_value_t = 2, value_parser = parse_threads)]
+    threads: usize,
+}
+
+fn parse_resolution(text: &str) -> Result<u32, String> {
+    values::count_in(text, 8..=geometry::extract::MAX_RESOLUTION as usize).map(|v| v as u32)
+}
+
+fn parse_threshold(text: &str) -> Result<f32, String> {
+    values::number_in(text, 1e-9..=1e9).and_then(|v| {
+        (v > 0.0)
+            .then_some(v as f32)
+            .ok_or_else(|| "must be greater than 0".into())
+    })
+}
+
+fn parse_direction(text: &str) -> Result<[f32; 3], String> {
+    let values: Vec<f32> = text
+        .split(',')
+        .map(|v| values::number_in(v, -1e6..=1e6).map(|v| v as f32))
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if x != 0.0 || y != 0.0 || z != 0.0 => Ok([x, y, z]),
+        [_, _, _] => Err("the zero vector has no direction".into()),
+        _ => Err(format!("`{text}`: expected x,y,z")),
+    }
+}
+
+fn parse_threads(text: &str) -> Result<usize, String> {
+    values::count_in(text, 1..=256)
+}
+
+/// The file formats, by the extension of the output.
+#[derive(Clone, Copy, PartialEq)]
+enum Format {
+    Ply,
+    Obj,
+}
+
+fn format_of(out: &Path, points: bool) -> Result<Format, String> {
+    let extension = out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    match extension.as_deref() {
+        Some("ply") => Ok(Format::Ply),
+        Some("obj") if !points => Ok(Format::Obj),
+        _ => Err(format!(
+            "{}: --out must end in {}",
+            out.display(),
+            if points { ".ply" } else { ".ply or .obj" }
+        )),
+    }
+}
+
+pub fn run(command: &ExportCommand) -> CliResult {
+    let (args, points) = match command {
+        ExportCommand::Mesh(args) => (args, false),
+        ExportCommand::Points(args) => (args, true),
+    };
+    let format = format_of(&args.out, points)?;
+    for file in std::iter::once(&args.out).chain(&args.preview) {
+        if file.exists() && !args.force {
+            return Err(format!("{}: already exists; --force replaces it", file.display()).into());
+        }
+    }
+    if let Some(parent) = args.out.parent() {
+        orbit_nerf_host::io::check_output_folder(parent)?;
+    }
+    let executor = RayonExecutor::new(args.threads)?;
+    let options = SurfaceOptions {
+        resolution: args.resolution,
+        threshold: args.threshold,
+    };
+    let mesh = with_checkpoint(&args.checkpoint, |trainer| {
+        let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
+        trainer.mean_embedding(&mut embedding);
+        println!(
+            "surface at density {:.4} on a grid of {} samples along the longest side",
+            geometry::extract::threshold(trainer, &options),
+            options.resolution
+        );
+        Ok(geometry::extract_surface(
+            trainer,
+            &executor,
+            &embedding,
+            &options,
+            &args.checkpoint,
+            memory::limit_or_default(args.memory_limit),
+        )?)
+    })?;
+    write(&args.out, &mesh, format, points)?;
+    if let Some(scene) = &args.chamfer_against {
+        let truth = super::ablate::true_surface(scene)?;
+        let samples = geometry::chamfer::DEFAULT_SAMPLES;
+        match geometry::chamfer_distance(&mesh.triangle_corners(), &truth, samples) {
+            Some(c) => println!(
+                "Chamfer distance to {scene}'s true shape: mean {:.1} mm, 95th percentile {:.1} mm ({samples} points on each)",
+                c.mean * 1000.0,
+                c.p95 * 1000.0
+            ),
+            None => return Err("the surface has no area: no Chamfer distance".into()),
+        }
+    }
+    if let Some(picture) = &args.preview {
+        let (from, up) = (
+            Vec3::from_array(args.preview_from),
+            Vec3::from_array(args.preview_up),
+        );
+        let rgb = geometry::preview::preview(&mesh, PREVIEW_SIZE, from, up);
+        orbit_nerf_host::io::write_png(picture, PREVIEW_SIZE, PREVIEW_SIZE, 3, &rgb)?;
+        println!("picture -> {}", picture.display());
+    }
+    println!(
+        "{} vertices{} -> {}",
+        mesh.positions.len(),
+        if points {
+            String::new()
+        } else {
+            format!(", {} triangles", mesh.triangles.len())
+        },
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn write(out: &Path, mesh: &Mesh, format: Format, points: bool) -> CliResult {
+    match format {
+        Format::Ply => files::write_ply(out, mesh, !points)?,
+        Format::Obj => files::write_obj(out, mesh)?,
+    }
+    Ok(())
+}

@@ -1,0 +1,221 @@
+//! What leaves the program besides checkpoints: `export mesh` / `export points` (re-read with
+//! `ply-rs-bw` and `tobj` and checked) and `render --orbit` (PNG frames and a GIF with one
+//! frame per view), with their flag checks and the refusal to overwrite.
+
+mod common;
+
+use common::{run_orbit_nerf, temp_dir};
+use image::AnimationDecoder;
+use ply_rs_bw::parser::Parser;
+use ply_rs_bw::ply::{DefaultElement, Property};
+use std::path::Path;
+
+/// Run `orbit-nerf` with the words of `line` and then `more`.
+fn cli(line: &str, more: &[&str]) -> (bool, String) {
+    let mut args: Vec<&str> = line.split_whitespace().collect();
+    args.extend_from_slice(more);
+    run_orbit_nerf(&args)
+}
+
+/// A small simulated lightbox set in `dir/data` and a field trained on it; its checkpoint.
+fn trained(dir: &Path) -> String {
+    let data = dir.join("data");
+    let run = dir.join("run");
+    let (ok, text) = cli(
+        "simulate --scene lightbox --frames 24 --size 48 --out",
+        &[data.to_str().unwrap()],
+    );
+    assert!(ok, "{text}");
+    let (ok, text) = cli(
+        "train --size 48 --steps 300 --data",
+        &[data.to_str().unwrap(), "--out", run.to_str().unwrap()],
+    );
+    assert!(ok, "{text}");
+    run.join("checkpoint.onrf").to_str().unwrap().to_string()
+}
+
+/// The checkpoint's scene box, from the config.toml `train` writes beside it.
+fn scene_box(checkpoint: &str) -> ([f32; 3], [f32; 3]) {
+    let config = Path::new(checkpoint).with_file_name("config.toml");
+    let table: toml::Table = toml::from_str(&std::fs::read_to_string(config).unwrap()).unwrap();
+    let corner = |key: &str| -> [f32; 3] { table[key].clone().try_into().unwrap() };
+    (corner("aabb_min"), corner("aabb_max"))
+}
+
+fn inside(p: [f32; 3], (min, max): ([f32; 3], [f32; 3])) -> bool {
+    (0..3).all(|a| min[a] - 1e-4 <= p[a] && p[a] <= max[a] + 1e-4)
+}
+
+fn float(v: &DefaultElement, key: &str) -> f32 {
+    match v[key] {
+        Property::Float(x) => x,
+        ref other => panic!("{key}: {other:?}"),
+    }
+}
+
+/// Check a PLY file: vertices inside the box with unit normals, and (for a mesh) triangles
+/// indexing existing vertices. Returns the vertex count.
+fn check_ply(path: &Path, bounds: ([f32; 3], [f32; 3]), faces: bool) -> usize {
+    let mut file = std::fs::File::open(path).unwrap();
+    let ply = Parser::<DefaultElement>::new().read_ply(&mut file).unwrap();
+    let vertices = &ply.payload["vertex"];
+    assert!(!vertices.is_empty(), "{} has no vertex", path.display());
+    for v in vertices {
+        let p = ["x", "y", "z"].map(|k| float(v, k));
+        assert!(inside(p, bounds), "{p:?} outside {bounds:?}");
+        let n = ["nx", "ny", "nz"].map(|k| float(v, k));
+        assert!(
+            (n.iter().map(|c| c * c).sum::<f32>() - 1.0).abs() < 1e-3,
+            "{n:?}"
+        );
+        for key in ["red", "green", "blue"] {
+            assert!(matches!(v[key], Property::UChar(_)), "{key}: {:?}", v[key]);
+        }
+    }
+    match ply.payload.get("face") {
+        Some(list) if faces => {
+            assert!(!list.is_empty());
+            for f in list {
+                let Property::ListUInt(ref t) = f["vertex_indices"] else {
+                    panic!("{:?}", f["vertex_indices"]);
+                };
+                assert_eq!(t.len(), 3);
+                assert!(t.iter().all(|&i| (i as usize) < vertices.len()), "{t:?}");
+            }
+        }
+        None if !faces => {}
+        other => panic!("faces {faces}: {other:?}"),
+    }
+    vertices.len()
+}
+
+#[test]
+fn export_writes_meshes_and_points_that_read_back_and_refuses_bad_values() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let dir = temp_dir("export");
+    let checkpoint = trained(&dir);
+    let bounds = scene_box(&checkpoint);
+    let out = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    let export = |kind: &str, file: &str, more: &[&str]| {
+        let mut args = vec![kind, "--checkpoint", &checkpoint, "--out"];
+        let file = out(file);
+        args.push(&file);
+        args.extend_from_slice(more);
+        cli("export", &args)
+    };
+    for (kind, file) in [
+        ("mesh", "mesh.ply"),
+        ("mesh", "mesh.obj"),
+        ("points", "points.ply"),
+    ] {
+        let (ok, text) = export(kind, file, &["--resolution", "48"]);
+        assert!(ok, "{text}");
+    }
+    // Scored against the simulated target's true shape.
+    let scored = ["--resolution", "32", "--chamfer-against", "lightbox"];
+    let (ok, text) = export("mesh", "scored.ply", &scored);
+    assert!(
+        ok && text.contains("Chamfer distance to lightbox's true shape: mean"),
+        "{text}"
+    );
+    let mesh_vertices = check_ply(&dir.join("mesh.ply"), bounds, true);
+    let point_count = check_ply(&dir.join("points.ply"), bounds, false);
+    assert_eq!(mesh_vertices, point_count);
+    let (models, _) = tobj::load_obj(dir.join("mesh.obj"), &tobj::LoadOptions::default()).unwrap();
+    let mesh = &models[0].mesh;
+    assert_eq!(mesh.positions.len(), 3 * mesh_vertices);
+    assert!(!mesh.indices.is_empty() && mesh.indices.len() % 3 == 0);
+    assert!(mesh.indices.iter().all(|&i| (i as usize) < mesh_vertices));
+    assert_eq!(mesh.vertex_color.len(), mesh.positions.len());
+    assert!(mesh.vertex_color.iter().all(|c| (0.0..=1.0).contains(c)));
+    for p in mesh.positions.chunks_exact(3) {
+        assert!(inside([p[0], p[1], p[2]], bounds), "{p:?}");
+    }
+    // An existing file is kept without --force and replaced with it.
+    let before = std::fs::read(dir.join("mesh.ply")).unwrap();
+    let (ok, text) = export("mesh", "mesh.ply", &[]);
+    assert!(!ok && text.contains("--force"), "{text}");
+    assert_eq!(std::fs::read(dir.join("mesh.ply")).unwrap(), before);
+    // Values a user might type: each refused naming its flag, nothing written.
+    for (flag, value) in [
+        ("--resolution", "0"),
+        ("--resolution", "-1"),
+        ("--resolution", "100000"),
+        ("--resolution", "7"),
+        ("--threshold", "0"),
+        ("--threshold", "-2"),
+        ("--threshold", "nan"),
+        ("--threshold", "inf"),
+        ("--memory-limit", "0"),
+    ] {
+        let (ok, text) = export("mesh", "bad.ply", &[flag, value]);
+        assert!(!ok && text.contains(flag), "{flag} {value}: {text}");
+    }
+    // A grid larger than the memory limit is refused before it is allocated.
+    let huge = ["--resolution", "2048", "--memory-limit", "1G"];
+    let (ok, text) = export("mesh", "bad.ply", &huge);
+    assert!(!ok && text.contains("memory limit"), "{text}");
+    // A threshold above every density of the field says what the densities are.
+    let (ok, text) = export(
+        "mesh",
+        "bad.ply",
+        &["--threshold", "1e9", "--resolution", "16"],
+    );
+    assert!(!ok && text.contains("no surface"), "{text}");
+    assert!(!dir.join("bad.ply").exists());
+    let (ok, text) = export("points", "points.obj", &[]);
+    assert!(!ok && text.contains(".ply"), "{text}");
+
+    // New views: an orbit of 6 frames and its GIF.
+    let data = dir.join("data");
+    let views = dir.join("orbit");
+    let orbit = |extra: &[&str]| {
+        let mut args = vec![
+            "--data",
+            data.to_str().unwrap(),
+            "--checkpoint",
+            &checkpoint,
+        ];
+        args.extend(["--out", views.to_str().unwrap()]);
+        args.extend_from_slice(extra);
+        cli("render --size 48", &args)
+    };
+    let (ok, text) = orbit(&["--orbit", "6"]);
+    assert!(ok, "{text}");
+    for k in 0..6 {
+        let frame = image::open(views.join(format!("orbit_{k:04}.png"))).unwrap();
+        assert_eq!((frame.width(), frame.height()), (48, 48));
+    }
+    let gif = std::fs::File::open(views.join("orbit.gif")).unwrap();
+    let decoder = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(gif)).unwrap();
+    let frames = decoder.into_frames().collect_frames().unwrap();
+    assert_eq!(frames.len(), 6);
+    // Not over the existing frames without --force; with it, yes.
+    let (ok, text) = orbit(&["--orbit", "6"]);
+    assert!(!ok && text.contains("--force"), "{text}");
+    let (ok, text) = orbit(&["--orbit", "6", "--force", "--elevation", "-20"]);
+    assert!(ok, "{text}");
+    for (flag, value) in [("--orbit", "0"), ("--orbit", "-3"), ("--elevation", "90")] {
+        let mut extra = vec![flag, value];
+        if flag == "--elevation" {
+            extra.extend(["--orbit", "3"]);
+        }
+        let (ok, text) = orbit(&extra);
+        assert!(!ok && text.contains(flag), "{flag} {value}: {text}");
+    }
+    // A path file: two cameras; a bad line is named.
+    let path = dir.join("path.txt");
+    std::fs::write(
+        &path,
+        "# eye, target\n0 0 3 0 0 0 0 1 0\n3 0 0 0 0 0 0 0 1\n",
+    )
+    .unwrap();
+    let (ok, text) = orbit(&["--path", path.to_str().unwrap(), "--force"]);
+    assert!(ok, "{text}");
+    std::fs::write(&path, "0 0 3 0 0\n").unwrap();
+    let (ok, text) = orbit(&["--path", path.to_str().unwrap(), "--force"]);
+    assert!(!ok && text.contains("line 1"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
