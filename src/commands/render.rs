@@ -42,6 +42,7 @@ pub struct RenderArgs {
     /// Replace orbit frames, GIF and MP4 already in --out.
     #[arg(long)]
     force: bool,
+    /// Output folder: view_NNN.png per dataset view, or the orbit's frames and GIF.
     #[arg(long, default_value = "runs/render")]
     out: PathBuf,
     /// Worker threads (results do not depend on it).

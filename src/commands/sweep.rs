@@ -28,10 +28,15 @@ pub struct SweepArgs {
 #[derive(clap::Subcommand, Debug)]
 enum SweepCommand {
     /// List a description's tasks (index and name).
-    List { description: PathBuf },
+    List {
+        /// The sweep description (TOML; see `sweeps/pose-noise.toml`).
+        description: PathBuf,
+    },
     /// Run the unfinished tasks on this machine, several processes at once, then collect.
     Run {
+        /// The sweep description (TOML; see `sweeps/pose-noise.toml`).
         description: PathBuf,
+        /// The sweep's folder: `tasks/<index>/` per task, the merged tables and figures.
         #[arg(long, default_value = "runs/sweep")]
         out: PathBuf,
         /// Tasks run at once (default: one per core).
@@ -44,8 +49,11 @@ enum SweepCommand {
     },
     /// Run one task: what `run` starts per task and each Slurm array task calls.
     RunTask {
+        /// The sweep description (TOML; see `sweeps/pose-noise.toml`).
         description: PathBuf,
+        /// The task's index (`sweep list` shows them).
         index: usize,
+        /// The sweep's folder: `tasks/<index>/` per task, the merged tables and figures.
         #[arg(long, default_value = "runs/sweep")]
         out: PathBuf,
         /// Worker threads (results do not depend on it).
@@ -56,9 +64,12 @@ enum SweepCommand {
     /// submit it with `sbatch`. The binary, the description and `--out` must be on a
     /// filesystem every node sees.
     Slurm {
+        /// The sweep description (TOML; see `sweeps/pose-noise.toml`).
         description: PathBuf,
+        /// The sweep's folder: `tasks/<index>/` per task, the merged tables and figures.
         #[arg(long, default_value = "runs/sweep")]
         out: PathBuf,
+        /// CPUs of each array task (`#SBATCH --cpus-per-task`; its threads).
         #[arg(long, default_value_t = 1)]
         cpus_per_task: u32,
         /// Partition (default: the cluster's default).
@@ -73,7 +84,9 @@ enum SweepCommand {
     },
     /// Merge the tasks' results into `sweep.csv`, `sweep.md` and the figures in `--out`.
     Collect {
+        /// The sweep description (TOML; see `sweeps/pose-noise.toml`).
         description: PathBuf,
+        /// The sweep's folder: `tasks/<index>/` per task, the merged tables and figures.
         #[arg(long, default_value = "runs/sweep")]
         out: PathBuf,
     },
