@@ -66,7 +66,8 @@ fn lego() -> Option<&'static Dataset> {
 }
 
 fn tiny_config() -> Config {
-    train::read_config(&root().join("budgets/tiny.toml")).expect("tiny budget parses")
+    train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT)
+        .expect("tiny budget parses")
 }
 
 /// Train `steps` steps of the tiny profile on lego with `threads` workers and return the
@@ -159,7 +160,7 @@ fn lego_checkpoint_bytes_equal_the_recorded_ones() {
 /// The `[bytes]` table and the cap of a budget file.
 fn budget(name: &str) -> (Config, toml::Table, usize) {
     let path = root().join("budgets").join(name);
-    let config = train::read_config(&path).unwrap();
+    let config = train::read_config(&path, &Config::DEFAULT).unwrap();
     let table: toml::Table = toml::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
     let bytes = table["bytes"].as_table().unwrap().clone();
     let cap = table["max_total_bytes"].as_integer().unwrap() as usize;
@@ -659,15 +660,17 @@ fn bad_config_files_name_the_file_and_field() {
         ("features = 8", "features = 12", "features"),
         ("chunks = 2", "chunks = 0", "chunks"),
         ("seed = 0", "seed = 0\nunknown_knob = 1", "unknown_knob"),
-        ("march_steps = 256", "", "march_steps"),
+        ("march_steps = 256", "march_steps = \"many\"", "march_steps"),
     ];
     for (from, to, field) in cases {
         let path = dir.path().join("bad.toml");
         std::fs::write(&path, text.replace(from, to)).unwrap();
-        let err = train::read_config(&path).unwrap_err().to_string();
+        let err = train::read_config(&path, &Config::DEFAULT)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("bad.toml") && err.contains(field), "{err}");
     }
-    let missing = train::read_config(Path::new("/nonexistent/config.toml"))
+    let missing = train::read_config(Path::new("/nonexistent/config.toml"), &Config::DEFAULT)
         .unwrap_err()
         .to_string();
     assert!(missing.contains("/nonexistent/config.toml"), "{missing}");

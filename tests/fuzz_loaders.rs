@@ -10,7 +10,7 @@
 
 use orbit_nerf_core::glam::{Quat, Vec3};
 use orbit_nerf_core::rng::Rng;
-use orbit_nerf_core::{MemoryPlan, Pose, Trainer};
+use orbit_nerf_core::{Config, MemoryPlan, Pose, Trainer};
 use orbit_nerf_host::formats::speedplus::{
     self, FrameDecoder, Label, SpeedCamera, Truth, TruthFrame,
 };
@@ -282,9 +282,11 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
     ));
 
     // A small model: the tiny profile with one scale and one frame slot.
-    let mut small =
-        train::read_config(&Path::new(env!("CARGO_MANIFEST_DIR")).join("budgets/tiny.toml"))
-            .unwrap();
+    let mut small = train::read_config(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("budgets/tiny.toml"),
+        &Config::DEFAULT,
+    )
+    .unwrap();
     small.scales = 1;
     small.resolutions = [16, 0, 0, 0];
     small.occupancy_res = 8;
@@ -294,7 +296,7 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
     // Config TOML; a config that parses is also planned and, when small, built.
     let config_seed = train::config_to_toml(&small).into_bytes();
     crashes.extend(fuzz("config", &[config_seed], &file("config.toml"), &|p| {
-        train::read_config(p).is_ok_and(|config| {
+        train::read_config(p, &Config::DEFAULT).is_ok_and(|config| {
             let plan = MemoryPlan::new(&config);
             plan.total > 64 << 20 || {
                 let mut arena = vec![0u8; plan.total];

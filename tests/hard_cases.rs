@@ -483,7 +483,8 @@ fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
     use orbit_nerf_core::{MemoryPlan, Trainer};
     use orbit_nerf_host::checkpoint;
     let scratch = Scratch::new("nan-checkpoint");
-    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    let mut config =
+        train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT).unwrap();
     config.max_frames = 1;
     config.max_pixels_per_frame = 64;
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
@@ -515,7 +516,8 @@ fn small_training_run(scratch: &Scratch) -> (PathBuf, PathBuf) {
 
 /// The tiny profile with 128 rays per step, changed by `edit`, written to `scratch/name`.
 fn small_config(scratch: &Scratch, name: &str, edit: impl FnOnce(&mut Config)) -> PathBuf {
-    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    let mut config =
+        train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT).unwrap();
     config.rays_per_batch = 128;
     edit(&mut config);
     let path = scratch.path(name);
@@ -766,7 +768,8 @@ fn garbage_training_runs_fail_with_the_cause_and_save_nothing() {
 fn a_run_whose_every_step_was_skipped_is_refused() {
     use orbit_nerf_core::{MemoryPlan, Trainer};
     use orbit_nerf_host::train::TrainingTally;
-    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    let mut config =
+        train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT).unwrap();
     config.max_frames = 1;
     config.max_pixels_per_frame = 64;
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];

@@ -5,6 +5,8 @@
 mod common;
 
 use common::{run_orbit_nerf as orbit_nerf, temp_dir};
+use orbit_nerf_core::Config;
+use orbit_nerf_host::presets;
 use std::path::Path;
 
 /// Scalar-first quaternion of a rotation by `angle` about a unit `axis`.
@@ -325,4 +327,114 @@ fn a_checkpoint_gone_to_nan_is_an_error_naming_the_views_and_never_a_score() {
         assert!(!text.contains("dB"), "{command} printed a score:\n{text}");
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The config a run wrote beside its checkpoint, less what `train` fits to the data (scene
+/// box, background, frame capacities) and the steps: what remains is the preset's and the
+/// config file's.
+fn written_config(run: &Path) -> Config {
+    let text = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    written_config_of(toml::from_str(&text).unwrap())
+}
+
+/// Issue 12 item 5: without `--preset` a SPEED+ folder trains with the method's `spacecraft`
+/// preset and NeRF-synthetic with `default`; `--preset` chooses (an unknown one is refused,
+/// naming the flag and the presets); a config file naming a few fields changes only those,
+/// and without `aabb_*` it states no box (the data's is used).
+#[test]
+fn train_starts_from_the_preset_for_the_data_and_a_config_file_changes_its_fields() {
+    let dir = temp_dir("presets");
+    write_speedplus_folder(&dir);
+    let data = dir.join("synthetic");
+    let data = data.to_str().unwrap();
+    let preset = |name: &str| presets::find(name).unwrap().config().unwrap();
+    let quick = ["--steps", "2", "--fit-steps", "0"];
+
+    // By default the method's preset, here with a config file's two fields on top.
+    let partial = dir.join("partial.toml");
+    std::fs::write(
+        &partial,
+        "[config]\nlearning_rate = 0.02\ncolour_hidden = 32\n",
+    )
+    .unwrap();
+    let run = dir.join("spacecraft");
+    let (ok, text) = train_at_64_px(
+        data,
+        &run,
+        &[&quick[..], &["--config", partial.to_str().unwrap()]].concat(),
+    );
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("config: preset spacecraft (a SPEED+/SHIRT/simulator folder; --preset")
+            && text.contains("partial.toml on top"),
+        "{text}"
+    );
+    let expected = Config {
+        learning_rate: 0.02,
+        colour_hidden: 32,
+        ..preset("spacecraft")
+    };
+    assert_eq!(written_config(&run), written_config_of(expected));
+    // The file names no box: the box is the one found from the views (the folder has no
+    // truth.json), not the preset's.
+    assert!(
+        text.contains("scene box") && !text.contains("given by the config file"),
+        "{text}"
+    );
+    let table: toml::Table =
+        toml::from_str(&std::fs::read_to_string(run.join("config.toml")).unwrap()).unwrap();
+    assert_ne!(
+        table["aabb_min"].clone().try_into::<[f32; 3]>().unwrap(),
+        Config::DEFAULT.aabb_min
+    );
+
+    let run = dir.join("default");
+    let (ok, text) = train_at_64_px(data, &run, &[&quick[..], &["--preset", "default"]].concat());
+    assert!(
+        ok && text.contains("config: preset default (--preset)"),
+        "{text}"
+    );
+    assert_eq!(written_config(&run), written_config_of(Config::DEFAULT));
+
+    let (ok, text) = train_at_64_px(data, &dir.join("huge"), &["--preset", "huge"]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("--preset") && text.contains("default, spacecraft, tiny, standard, render"),
+        "{text}"
+    );
+
+    if let Some(shared) = common::shared_data() {
+        let lego = shared.join("nerf_synthetic/lego");
+        let run = dir.join("lego");
+        let (ok, text) = orbit_nerf(
+            &[
+                &["train", "--data", lego.to_str().unwrap(), "--size", "8"],
+                &quick[..],
+                &["--out", run.to_str().unwrap()],
+            ]
+            .concat(),
+        );
+        assert!(ok, "{text}");
+        assert!(
+            text.contains("config: preset default (a NeRF-synthetic folder; --preset"),
+            "{text}"
+        );
+        assert_eq!(written_config(&run), written_config_of(Config::DEFAULT));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `config` as [`written_config`] leaves it.
+fn written_config_of(config: Config) -> Config {
+    let base = Config::DEFAULT;
+    Config {
+        aabb_min: base.aabb_min,
+        aabb_max: base.aabb_max,
+        background: base.background,
+        max_frames: base.max_frames,
+        max_pixels_per_frame: base.max_pixels_per_frame,
+        steps: base.steps,
+        warmup_steps: base.warmup_steps,
+        ..config
+    }
 }

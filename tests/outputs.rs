@@ -18,6 +18,7 @@ fn cli(line: &str, more: &[&str]) -> (bool, String) {
 }
 
 /// A small simulated lightbox set in `dir/data` and a field trained on it; its checkpoint.
+/// The `default` preset: these tests are about the files written, and it trains fastest.
 fn trained(dir: &Path) -> String {
     let data = dir.join("data");
     let run = dir.join("run");
@@ -27,7 +28,7 @@ fn trained(dir: &Path) -> String {
     );
     assert!(ok, "{text}");
     let (ok, text) = cli(
-        "train --size 48 --steps 300 --data",
+        "train --preset default --size 48 --steps 300 --data",
         &[data.to_str().unwrap(), "--out", run.to_str().unwrap()],
     );
     assert!(ok, "{text}");

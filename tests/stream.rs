@@ -31,7 +31,8 @@ fn simulated_set(dir: &Path, frames: u32) {
 /// The tiny profile with small per-frame embeddings and pose correction, so per-frame state
 /// is recycled with the slots.
 fn base_config() -> Config {
-    let mut config = train::read_config(&root().join("budgets/tiny.toml")).unwrap();
+    let mut config =
+        train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT).unwrap();
     config.embedding_dim = 4;
     config.pose_correction = true;
     config

@@ -10,6 +10,7 @@ pub mod io;
 pub mod memory;
 pub mod metrics;
 pub mod orbit;
+pub mod presets;
 pub mod report;
 pub mod scene_box;
 pub mod sim;

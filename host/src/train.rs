@@ -14,37 +14,69 @@ use std::time::Instant;
 /// Default steps fitting a held-out view's appearance embedding.
 pub const DEFAULT_FIT_STEPS: u32 = 50;
 
-/// Read a full config from a TOML file: every field named, either at the top level or in a
-/// `[config]` table (as in the budget files, `budgets/*.toml`).
-pub fn read_config(path: &Path) -> Result<Config> {
+/// Read a config file on top of `base` (a preset): the file names only the fields it changes,
+/// either at the top level or in a `[config]` table (as in the budget files, `budgets/*.toml`,
+/// which name every field). An unknown field or a bad value is an error naming the file and
+/// the field.
+pub fn read_config(path: &Path, base: &Config) -> Result<Config> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    parse_config(path, &text)
+    parse_config(path, &text, base)
 }
 
 /// [`read_config`] of a file's text (`path` names it in errors).
-pub fn parse_config(path: &Path, text: &str) -> Result<Config> {
-    let table: toml::Table = toml::from_str(text)
-        .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
-    let table = match table.get("config") {
-        Some(toml::Value::Table(inner)) => inner.clone(),
-        _ => table,
-    };
-    config_from_table(path, "", table)
+pub fn parse_config(path: &Path, text: &str, base: &Config) -> Result<Config> {
+    with_overrides(path, "", base, &config_table(path, text)?)
 }
 
-/// A config from a TOML table holding every field, checked; errors name `path` and the field
-/// (after `prefix`, e.g. `variants[0].set.`, where the table sits inside a larger file).
-pub fn config_from_table(path: &Path, prefix: &str, table: toml::Table) -> Result<Config> {
-    let config: Config = serde_path_to_error::deserialize(table).map_err(|e| {
+/// The table of config fields in a config file's text: its `[config]` table when it has one,
+/// else its top level.
+fn config_table(path: &Path, text: &str) -> Result<toml::Table> {
+    let mut table: toml::Table = toml::from_str(text)
+        .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
+    Ok(match table.remove("config") {
+        Some(toml::Value::Table(inner)) => inner,
+        Some(other) => {
+            table.insert("config".into(), other);
+            table
+        }
+        None => table,
+    })
+}
+
+/// `base` with the fields in `set` replaced, checked; errors name `path` and the field (after
+/// `prefix`, e.g. `variants[0].set.`, where the table sits inside a larger file).
+pub fn with_overrides(
+    path: &Path,
+    prefix: &str,
+    base: &Config,
+    set: &toml::Table,
+) -> Result<Config> {
+    let mut table = toml::Table::try_from(base)
+        .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
+    for (key, value) in set {
+        if !table.contains_key(key) {
+            return Err(HostError::field(
+                path,
+                format!("{prefix}{key}"),
+                "not a config field",
+            ));
+        }
+        table.insert(key.clone(), value.clone());
+    }
+    let mut config: Config = serde_path_to_error::deserialize(table).map_err(|e| {
         let field = e.path().to_string();
         let reason = e.into_inner().to_string();
-        // Unknown and missing fields are reported at the top level; the reason names them.
         if field == "." {
             HostError::invalid(path, format!("not a valid config: {reason}"))
         } else {
             HostError::field(path, format!("{prefix}{field}"), reason)
         }
     })?;
+    // Fewer steps than the base's warm-up keep as much of it as fits, as `--steps` does: the
+    // user named `steps`, not the base's `warmup_steps`.
+    if set.contains_key("steps") && !set.contains_key("warmup_steps") {
+        config.warmup_steps = config.warmup_steps.min(config.steps);
+    }
     config.validate().map_err(|e| match e {
         orbit_nerf_core::Error::InvalidConfig { field } => {
             HostError::field(path, format!("{prefix}{field}"), "out of range")
@@ -55,16 +87,12 @@ pub fn config_from_table(path: &Path, prefix: &str, table: toml::Table) -> Resul
 }
 
 /// The scene box a config file sets (`aabb_min` and `aabb_max`, at the top level or in a
-/// `[config]` table), `None` when it sets none. A box the user wrote in a config file wins over
-/// the data's own (see [`crate::scene_box::choose_scene_box`]).
+/// `[config]` table), `None` when it sets none. Only a box written in the file counts: the one
+/// a file leaves to its preset does not. A box the user wrote wins over the data's own (see
+/// [`crate::scene_box::choose_scene_box`]).
 pub fn config_scene_box(path: &Path) -> Result<Option<([f32; 3], [f32; 3])>> {
     let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-    let table: toml::Table = toml::from_str(&text)
-        .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
-    let table = match table.get("config") {
-        Some(toml::Value::Table(inner)) => inner,
-        _ => &table,
-    };
+    let table = config_table(path, &text)?;
     let corner = |key: &str| -> Result<Option<[f32; 3]>> {
         table
             .get(key)
@@ -427,6 +455,46 @@ pub fn evaluate<E: Executor>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_partial_config_file_changes_only_its_fields() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("config.toml");
+        let base = Config::SPACECRAFT;
+        let changed = Config {
+            steps: 123,
+            warmup_steps: 123,
+            learning_rate: 0.02,
+            replacement: orbit_nerf_core::Replacement::Novelty,
+            ..base
+        };
+        // Both layouts: the top level and a `[config]` table beside other tables.
+        for text in [
+            "steps = 123\nlearning_rate = 0.02\nreplacement = \"novelty\"\n",
+            "max_total_bytes = 1\n[bytes]\nplanes = 1\n[config]\nsteps = 123\nlearning_rate = 0.02\nreplacement = \"novelty\"\n",
+        ] {
+            std::fs::write(&path, text).unwrap();
+            assert_eq!(read_config(&path, &base).unwrap(), changed, "{text}");
+        }
+        // An empty file is the base; a full file is itself whatever the base.
+        std::fs::write(&path, "").unwrap();
+        assert_eq!(read_config(&path, &base).unwrap(), base);
+        std::fs::write(&path, config_to_toml(&changed)).unwrap();
+        assert_eq!(read_config(&path, &Config::DEFAULT).unwrap(), changed);
+        // An unknown field, a value of the wrong type or out of range: the file and the field.
+        for (text, field) in [
+            ("lerning_rate = 0.1\n", "lerning_rate"),
+            ("[config]\nsteps = \"many\"\n", "steps"),
+            ("learning_rate = inf\n", "learning_rate"),
+            ("features = 0\n", "features"),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            match read_config(&path, &base) {
+                Err(HostError::Field { field: named, .. }) => assert_eq!(named, field, "{text}"),
+                other => panic!("{text}: {other:?}"),
+            }
+        }
+    }
 
     #[test]
     fn a_config_file_sets_the_box_only_when_it_names_it() {

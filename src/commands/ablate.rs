@@ -1,14 +1,18 @@
 //! `orbit-nerf ablate`: the paper's ablation (baseline, + appearance, + appearance and pose
 //! correction on one scene) and its pose-noise sweep on the `synthetic` preset.
 
-use super::{FIT_STEPS, Fallible, SceneBox, choose_box, parse_scene_box};
+use super::{
+    FIT_STEPS, Fallible, SceneBox, choose_box, parse_scene_box, preset_config, preset_parser,
+};
 use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{
     self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
 };
 use orbit_nerf_host::dataset::{Dataset, split_every};
+use orbit_nerf_host::formats::Format;
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::geometry::{self, Triangle};
+use orbit_nerf_host::presets;
 use orbit_nerf_host::report::{self, ModelOutcome, ModelRow, NoiseLevelResult};
 use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
 use orbit_nerf_host::sweep::{NoiseLevels, SweepDescription};
@@ -31,10 +35,14 @@ pub struct AblateArgs {
     /// frames are resized to (never upsampled).
     #[arg(long, default_value_t = 128)]
     pub size: u16,
-    /// Training steps of every model (the same budget for all; the default config's).
-    #[arg(long, default_value_t = Config::DEFAULT.steps)]
-    pub steps: u32,
-    /// Model and training config (TOML; default: the built-in default config).
+    /// Training steps of every model (the same budget for all; default: the config's).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub steps: Option<u32>,
+    /// Built-in config the three models start from (default: `spacecraft`, the method's).
+    #[arg(long, value_parser = preset_parser())]
+    pub preset: Option<String>,
+    /// Config file (TOML) of the fields to change in the preset's config, at the top level or
+    /// in a `[config]` table (a full file works too).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Run the pose-noise sweeps on the `synthetic` preset instead.
@@ -157,17 +165,30 @@ pub fn run(args: &AblateArgs) -> Fallible<()> {
     }
 }
 
+/// The models' base config: `--preset` (default `spacecraft`: the data is a spacecraft's), a
+/// `--config` file's fields, then `--steps`.
 fn base_config(args: &AblateArgs) -> Fallible<Config> {
-    let mut config = match &args.config {
-        Some(path) => orbit_nerf_host::train::read_config(path)?,
-        None => Config::SPACECRAFT,
+    let data = if args.data.is_some() {
+        Format::SpeedPlus.folder()
+    } else {
+        "a simulated scene"
     };
-    config.steps = args.steps;
-    config.warmup_steps = config.warmup_steps.min(args.steps);
+    let mut config = preset_config(
+        args.preset.as_deref(),
+        presets::SPACECRAFT,
+        data,
+        args.config.as_deref(),
+    )?;
+    if let Some(steps) = args.steps {
+        config.steps = steps;
+        config.warmup_steps = config.warmup_steps.min(steps);
+    }
     Ok(config)
 }
 
 fn ablate(args: &AblateArgs) -> Fallible<()> {
+    // The config is checked before the data is simulated or read.
+    let base = base_config(args)?;
     let (mut dataset, truth) = match &args.data {
         Some(path) => load(path, args.size, !args.no_masks)?,
         None => simulated(
@@ -180,7 +201,6 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
         )?,
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
-    let base = base_config(args)?;
     choose_box(
         &mut dataset,
         args.scene_box,
@@ -343,10 +363,9 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
         scene: Some("synthetic".into()),
         frames: Some(args.frames),
         size: Some(args.size.into()),
-        config: Some(
-            (args.config.as_ref()).map_or("spacecraft".into(), |p| p.display().to_string()),
-        ),
-        steps: Some(args.steps),
+        preset: args.preset.clone(),
+        config: (args.config.as_ref()).map(|p| p.display().to_string()),
+        steps: args.steps,
         holdout: Some(args.holdout),
         fit_steps: Some(args.fit_steps),
         masks: Some(!args.no_masks),

@@ -1,8 +1,9 @@
 //! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed.
 
-use super::{CliResult, DataArgs, choose_box, open_dataset, with_trainer};
+use super::{
+    CliResult, DataArgs, choose_box, config_for_data, open_dataset, preset_parser, with_trainer,
+};
 use clap::Args;
-use orbit_nerf_core::Config;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -24,12 +25,17 @@ pub struct BenchArgs {
     /// Thread counts to measure.
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     threads: Vec<usize>,
-    /// Model config (TOML, every field; see budgets/); default: the built-in config.
+    /// Built-in config to start from; default by the data's format: `spacecraft` for
+    /// SPEED+/SHIRT/simulator folders, `default` for NeRF-synthetic and nerfstudio.
+    #[arg(long, value_parser = preset_parser())]
+    preset: Option<String>,
+    /// Config file (TOML) of the fields to change in the preset's config (see budgets/).
     #[arg(long)]
     config: Option<PathBuf>,
 }
 
 pub fn run(args: &BenchArgs) -> CliResult {
+    let mut base = config_for_data(args.preset.as_deref(), &args.data, args.config.as_deref())?;
     let data = DataArgs {
         data: args.data.clone(),
         size: args.size,
@@ -37,10 +43,6 @@ pub fn run(args: &BenchArgs) -> CliResult {
         no_masks: false,
     };
     let (mut dataset, train_idx, _) = open_dataset(&data)?;
-    let mut base = match &args.config {
-        Some(path) => train::read_config(path)?,
-        None => Config::DEFAULT,
-    };
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
     base.steps = args.warmup + args.steps;
     let config = train::fit_config(&base, &dataset, train_idx.len());

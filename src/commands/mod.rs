@@ -17,13 +17,14 @@ use indicatif::ProgressStyle;
 use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::{self, Dataset, Frame};
+use orbit_nerf_host::formats::{self, Format};
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box::{self, StatedBox};
 use orbit_nerf_host::train::{
     RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
     read_config, restore_checkpoint,
 };
-use orbit_nerf_host::{formats, memory, values};
+use orbit_nerf_host::{memory, presets, values};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -52,7 +53,12 @@ struct DataArgs {
 
 #[derive(Args, Clone)]
 struct ModelArgs {
-    /// Full model and training config (TOML, every field; see budgets/).
+    /// Built-in config to start from; default by the data's format: `spacecraft` (the method)
+    /// for SPEED+/SHIRT/simulator folders, `default` for NeRF-synthetic and nerfstudio.
+    #[arg(long, value_parser = preset_parser())]
+    preset: Option<String>,
+    /// Config file (TOML) of the fields to change in the preset's config, at the top level or
+    /// in a `[config]` table (a full file, as budgets/*.toml, works too).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Training steps, 1 to 100 million (overrides the config).
@@ -81,6 +87,56 @@ struct ModelArgs {
     /// file's box, truth.json's and the box found from the data).
     #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
     scene_box: Option<SceneBox>,
+}
+
+/// `--preset`'s values: the built-in presets, each with what it is.
+fn preset_parser() -> clap::builder::PossibleValuesParser {
+    presets::PRESETS
+        .map(|p| clap::builder::PossibleValue::new(p.name).help(p.about))
+        .into()
+}
+
+/// The config a run starts from: the preset `chosen` by `--preset`, else `default`, the
+/// preset for the run's data (`data` says what data); with a config file's fields on top.
+/// Prints one line saying which and why.
+fn preset_config(
+    chosen: Option<&str>,
+    default: &str,
+    data: &str,
+    file: Option<&Path>,
+) -> Fallible<Config> {
+    let (name, why) = match chosen {
+        Some(name) => (name, "--preset".to_string()),
+        None => (
+            default,
+            format!(
+                "{data}; --preset to choose another: {}",
+                presets::names().collect::<Vec<_>>().join(", ")
+            ),
+        ),
+    };
+    let preset = presets::find(name).ok_or_else(|| {
+        format!(
+            "--preset {name}: no such preset ({})",
+            presets::names().collect::<Vec<_>>().join(", ")
+        )
+    })?;
+    let config = match file {
+        Some(path) => read_config(path, &preset.config()?)?,
+        None => preset.config()?,
+    };
+    let on_top = file.map_or(String::new(), |path| {
+        format!(", with the fields of {} on top", path.display())
+    });
+    println!("config: preset {name} ({why}){on_top}");
+    Ok(config)
+}
+
+/// [`preset_config`] for a run on the dataset `data`: the preset for its format, told from the
+/// folder's layout (nothing is read), unless `chosen`.
+fn config_for_data(chosen: Option<&str>, data: &Path, file: Option<&Path>) -> Fallible<Config> {
+    let format = Format::of(data);
+    preset_config(chosen, presets::for_format(format), format.folder(), file)
 }
 
 /// A scene box as min and max corners.
@@ -170,11 +226,11 @@ fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
     Ok((dataset, train, test))
 }
 
-fn model_config(model: &ModelArgs) -> Fallible<Config> {
-    let mut config = match &model.config {
-        Some(path) => read_config(path)?,
-        None => Config::DEFAULT,
-    };
+/// The model config of a run on `data`: the preset (`--preset`, else the one for the data's
+/// format, told from the folder's layout before the data is read), a `--config` file's fields,
+/// then the flags.
+fn model_config(model: &ModelArgs, data: &Path) -> Fallible<Config> {
+    let mut config = config_for_data(model.preset.as_deref(), data, model.config.as_deref())?;
     if let Some(steps) = model.steps {
         config.steps = steps;
         config.warmup_steps = config.warmup_steps.min(steps);

@@ -2,10 +2,12 @@
 //! the simulator into the core's fixed frame store, train a fixed number of steps per frame,
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
-use super::{FIT_STEPS, Fallible, STOP, SceneBox, bar_style, parse_scene_box, stop_on_signal};
+use super::{
+    FIT_STEPS, Fallible, STOP, SceneBox, bar_style, config_for_data, parse_scene_box,
+    preset_config, preset_parser, stop_on_signal,
+};
 use indicatif::ProgressBar;
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
-use orbit_nerf_host::ablation::APPEARANCE_POSE;
 use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures, ViewMetrics};
 use orbit_nerf_host::scene_box::box_text;
 use orbit_nerf_host::sim::Scene;
@@ -14,7 +16,7 @@ use orbit_nerf_host::stream::{
     StreamSettings, StreamState, WatchOptions, WatchedFolder,
 };
 use orbit_nerf_host::train::{self, RayonExecutor};
-use orbit_nerf_host::{memory, values};
+use orbit_nerf_host::{memory, presets, values};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -102,8 +104,12 @@ pub struct StreamArgs {
     /// get the background colour for training and scoring (as the paper removes it).
     #[arg(long)]
     pub no_masks: bool,
-    /// Model config (TOML, every field); default: the built-in config with the method's
-    /// appearance embeddings and pose correction.
+    /// Built-in config to start from; default: `spacecraft` (the method) for --scene, --watch
+    /// and SPEED+/SHIRT/simulator folders, `default` for NeRF-synthetic folders.
+    #[arg(long, value_parser = preset_parser())]
+    pub preset: Option<String>,
+    /// Config file (TOML) of the fields to change in the preset's config, at the top level or
+    /// in a `[config]` table (a full file works too).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Random seed of the model (overrides the config).
@@ -161,14 +167,19 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
     }
 }
 
+/// The stream's model config: `--preset` (else the preset for the source), a `--config`
+/// file's fields, then `--seed`.
 fn model_config(args: &StreamArgs) -> Fallible<Config> {
-    let mut config = match &args.config {
-        Some(path) => train::read_config(path)?,
-        None => Config {
-            embedding_dim: APPEARANCE_POSE.embedding_dim,
-            pose_correction: APPEARANCE_POSE.pose_correction,
-            ..Config::DEFAULT
-        },
+    let (preset, file) = (args.preset.as_deref(), args.config.as_deref());
+    let mut config = match (&args.data, &args.scene) {
+        (Some(dir), _) => config_for_data(preset, dir, file)?,
+        (None, Some(_)) => preset_config(preset, presets::SPACECRAFT, "a simulated scene", file)?,
+        (None, None) => preset_config(
+            preset,
+            presets::SPACECRAFT,
+            "a watched folder of SPEED+ frames",
+            file,
+        )?,
     };
     if let Some(seed) = args.seed {
         config.seed = seed;

@@ -26,12 +26,13 @@ pub struct TrainArgs {
     data: DataArgs,
     #[command(flatten)]
     model: ModelArgs,
-    /// Output folder: checkpoint.onrf, config.toml, metrics.json, renders/.
+    /// Output folder: checkpoint.onrf, config.toml (the whole config, every field), metrics.json,
+    /// renders/.
     #[arg(long, default_value = "runs/train")]
     out: PathBuf,
     /// Continue the run saved in OUT/checkpoint.onrf with its own config (give the same
     /// --data, --size, --holdout and masks); ends with the bytes of a run never stopped.
-    #[arg(long, conflicts_with_all = ["force", "config", "steps", "seed", "embedding_dim", "pose_correction", "scene_box"])]
+    #[arg(long, conflicts_with_all = ["force", "preset", "config", "steps", "seed", "embedding_dim", "pose_correction", "scene_box"])]
     resume: bool,
     /// Start a fresh run even though OUT holds an earlier run's checkpoint, replacing it.
     #[arg(long)]
@@ -57,11 +58,12 @@ pub fn run(args: &TrainArgs) -> CliResult {
         io::check_fresh_checkpoint(&checkpoint_path, args.force, "training run")?;
     }
     stop_on_signal()?;
-    // The config (flags and file) is checked before the data is read.
+    // The config (preset, file and flags) is checked before the data is read: the preset for
+    // the data comes from the folder's layout alone.
     let base = if args.resume {
         None
     } else {
-        Some(model_config(&args.model)?)
+        Some(model_config(&args.model, &args.data.data)?)
     };
     check_dataset_memory(&args.data, args.model.memory_limit)?;
     let (mut dataset, train_idx, test_idx) = open_dataset(&args.data)?;

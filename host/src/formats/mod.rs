@@ -15,6 +15,42 @@ use nerf_synthetic::SyntheticSplit;
 use std::path::Path;
 use transforms::{LoadOptions, OutputSize};
 
+/// The dataset formats, told apart by the layout of a folder alone (which files exist; none is
+/// read), so that a command can choose its model config before it reads the data.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    /// `transforms_train.json` (Blender convention, composited on a background colour).
+    NerfSynthetic,
+    /// `transforms.json`.
+    Nerfstudio,
+    /// Anything else: a SPEED+ / SHIRT / simulator label file or folder (with `camera.json`).
+    SpeedPlus,
+}
+
+impl Format {
+    /// The format [`open`] reads `path` (a folder, or a label / transforms file) as.
+    pub fn of(path: &Path) -> Format {
+        let is =
+            |name: &str| path.join(name).is_file() || path.file_name().is_some_and(|n| n == name);
+        if is("transforms_train.json") {
+            Format::NerfSynthetic
+        } else if is("transforms.json") {
+            Format::Nerfstudio
+        } else {
+            Format::SpeedPlus
+        }
+    }
+
+    /// The kind of folder, for messages ("a SPEED+/SHIRT/simulator folder").
+    pub fn folder(self) -> &'static str {
+        match self {
+            Format::NerfSynthetic => "a NeRF-synthetic folder",
+            Format::Nerfstudio => "a nerfstudio folder",
+            Format::SpeedPlus => "a SPEED+/SHIRT/simulator folder",
+        }
+    }
+}
+
 /// Open a dataset folder (or label / transforms file) of any supported format:
 /// NeRF-synthetic (`transforms_train.json`), nerfstudio (`transforms.json`) or SPEED+/SHIRT
 /// (a label file with `camera.json`). `max_side` resizes the images (longer side in pixels).
@@ -25,21 +61,22 @@ pub fn open(path: &Path, max_side: Option<u32>, background: [f32; 3]) -> Result<
     }
     let size = max_side.map_or(OutputSize::Original, OutputSize::MaxSide);
     let options = LoadOptions { size, background };
-    let is = |name: &str| path.join(name).is_file() || path.file_name().is_some_and(|n| n == name);
-    if is("transforms_train.json") {
-        let dir = if path.is_dir() {
-            path
-        } else {
-            path.parent().unwrap_or(path)
-        };
-        nerf_synthetic::load_nerf_synthetic(dir, SyntheticSplit::Train, &options)
-    } else if is("transforms.json") {
-        nerfstudio::load_nerfstudio(path, &options)
-    } else {
-        let options = speedplus::LoadOptions {
-            max_side,
-            domain: None,
-        };
-        Ok(speedplus::load(path, &options)?.dataset)
+    match Format::of(path) {
+        Format::NerfSynthetic => {
+            let dir = if path.is_dir() {
+                path
+            } else {
+                path.parent().unwrap_or(path)
+            };
+            nerf_synthetic::load_nerf_synthetic(dir, SyntheticSplit::Train, &options)
+        }
+        Format::Nerfstudio => nerfstudio::load_nerfstudio(path, &options),
+        Format::SpeedPlus => {
+            let options = speedplus::LoadOptions {
+                max_side,
+                domain: None,
+            };
+            Ok(speedplus::load(path, &options)?.dataset)
+        }
     }
 }

@@ -1,5 +1,5 @@
 //! Sweep descriptions: one TOML file naming the data (a simulated scene or a dataset folder),
-//! the base config (a built-in profile or a config file), the variants (named config
+//! the base config (a built-in preset, and a config file changing some of its fields), the variants (named config
 //! overrides), the label-noise levels, the seeds and the budget. Reading one checks every
 //! field (errors name the file and the field) and expands it into its tasks, each one model
 //! trained and scored in its own process: `sweep run` runs them on this machine, `sweep slurm`
@@ -9,7 +9,8 @@
 //! scene = "synthetic"          # a preset or a scene file; or data = "path/to/speedplus"
 //! frames = 400                 # simulated scenes only
 //! size = 128
-//! config = "spacecraft"        # default, spacecraft, tiny, standard, render, or a file
+//! config = "spacecraft"        # a preset (default, spacecraft, tiny, standard, render), or a
+//!                              #   file of the fields to change (on top of `preset`)
 //! steps = 2000
 //! seeds = [0, 1]
 //!
@@ -27,10 +28,11 @@ pub mod slurm;
 
 use crate::ablation::{APPEARANCE, APPEARANCE_POSE, BASELINE, Variant};
 use crate::error::{HostError, Result};
+use crate::presets;
 use crate::scene_box::parse_box;
 use crate::sim::Scene;
 use crate::sim::scene::LabelNoise;
-use crate::train::{config_from_table, parse_config};
+use crate::train::with_overrides;
 use orbit_nerf_core::Config;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -47,7 +49,11 @@ pub struct SweepDescription {
     pub frames: Option<u32>,
     /// Image size in pixels (default 128).
     pub size: Option<u32>,
-    /// A built-in profile (see [`PROFILES`]) or a config file (default `spacecraft`).
+    /// The built-in preset the base config starts from (see [`crate::presets`]; default
+    /// `spacecraft`).
+    pub preset: Option<String>,
+    /// A preset (instead of `preset`), or a config file naming the fields it changes in
+    /// `preset`'s config.
     pub config: Option<String>,
     /// Training steps of every model (default: the base config's).
     pub steps: Option<u32>,
@@ -85,18 +91,6 @@ pub struct VariantSpec {
     #[serde(default)]
     pub set: toml::Table,
 }
-
-/// The built-in base configs: the core's two presets and the budget profiles.
-pub const PROFILES: [(&str, Option<&str>); 5] = [
-    ("default", None),
-    ("spacecraft", None),
-    ("tiny", Some(include_str!("../../../budgets/tiny.toml"))),
-    (
-        "standard",
-        Some(include_str!("../../../budgets/standard.toml")),
-    ),
-    ("render", Some(include_str!("../../../budgets/render.toml"))),
-];
 
 /// Where a sweep's frames come from.
 #[derive(Clone, Debug, PartialEq)]
@@ -269,7 +263,7 @@ impl SweepDescription {
             .map(parse_box)
             .transpose()
             .map_err(|e| field("scene_box", e))?;
-        let (mut base, config_file) = base_config(origin, self.config.as_deref(), &relative)?;
+        let (mut base, config_file) = self.base_config(origin, &relative)?;
         if let Some(steps) = self.steps {
             if steps == 0 {
                 return Err(field("steps", "0: a model needs at least one step".into()));
@@ -380,35 +374,43 @@ impl SweepDescription {
     }
 }
 
-/// The base config a description names (default `spacecraft`), and its file when it is one.
-fn base_config(
-    origin: &Path,
-    name: Option<&str>,
-    relative: &dyn Fn(&Path) -> PathBuf,
-) -> Result<(Config, Option<PathBuf>)> {
-    let name = name.unwrap_or("spacecraft");
-    match PROFILES.iter().find(|(profile, _)| *profile == name) {
-        Some(("default", _)) => Ok((Config::DEFAULT, None)),
-        Some((_, None)) => Ok((Config::SPACECRAFT, None)),
-        Some((profile, Some(text))) => {
-            let builtin = Path::new("<built-in>").join(format!("{profile}.toml"));
-            Ok((parse_config(&builtin, text)?, None))
-        }
-        None => {
-            let path = relative(Path::new(name));
-            if !path.is_file() {
-                let names: Vec<&str> = PROFILES.iter().map(|(n, _)| *n).collect();
+impl SweepDescription {
+    /// The base config the description names: `preset` (default `spacecraft`) with the fields
+    /// of the `config` file, or the preset `config` names; and the file when there is one.
+    fn base_config(
+        &self,
+        origin: &Path,
+        relative: &dyn Fn(&Path) -> PathBuf,
+    ) -> Result<(Config, Option<PathBuf>)> {
+        let preset = self.preset.as_deref();
+        let preset_config =
+            || presets::config_of(origin, "preset", preset.unwrap_or(presets::SPACECRAFT));
+        let Some(name) = self.config.as_deref() else {
+            return Ok((preset_config()?, None));
+        };
+        if presets::find(name).is_some() {
+            if preset.is_some() {
                 return Err(HostError::field(
                     origin,
                     "config",
-                    format!(
-                        "`{name}` is no config file and no profile ({})",
-                        names.join(", ")
-                    ),
+                    format!("`{name}` is a preset and `preset` names one too: give one"),
                 ));
             }
-            Ok((crate::train::read_config(&path)?, Some(path)))
+            return Ok((presets::config_of(origin, "config", name)?, None));
         }
+        let path = relative(Path::new(name));
+        if !path.is_file() {
+            return Err(HostError::field(
+                origin,
+                "config",
+                format!(
+                    "`{name}` is no config file and no preset ({})",
+                    presets::names().collect::<Vec<_>>().join(", ")
+                ),
+            ));
+        }
+        let config = crate::train::read_config(&path, &preset_config()?)?;
+        Ok((config, Some(path)))
     }
 }
 
@@ -436,23 +438,6 @@ fn default_variants(noise: bool) -> Vec<VariantSpec> {
             ]),
         })
         .collect()
-}
-
-/// `base` with the fields in `set` replaced; errors name `prefix` and the field.
-fn with_overrides(origin: &Path, prefix: &str, base: &Config, set: &toml::Table) -> Result<Config> {
-    let mut table = toml::Table::try_from(base)
-        .map_err(|e| HostError::invalid(origin, format!("config encoding failed: {e}")))?;
-    for (key, value) in set {
-        if !table.contains_key(key) {
-            return Err(HostError::field(
-                origin,
-                format!("{prefix}{key}"),
-                "not a config field",
-            ));
-        }
-        table.insert(key.clone(), value.clone());
-    }
-    config_from_table(origin, prefix, table)
 }
 
 /// The rotation and translation levels as label noise, each checked.
@@ -603,6 +588,11 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
             (format!("{scene}seeds = []"), "seeds"),
             (format!("{scene}seeds = [1, 2, 1]"), "seeds"),
             (format!("{scene}config = \"huge\""), "config"),
+            (format!("{scene}preset = \"huge\""), "preset"),
+            (
+                format!("{scene}preset = \"tiny\"\nconfig = \"default\""),
+                "config",
+            ),
             (format!("{scene}scene_box = \"0,0,0,1,1\""), "scene_box"),
             (
                 format!("{scene}[noise]\nrotation_deg = [0, inf]"),
@@ -702,5 +692,29 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
         assert_eq!(sweep.source, Source::Data(dir.path().join("frames")));
         assert_eq!(sweep.config_file, Some(dir.path().join("model.toml")));
         assert_eq!(sweep.base.features, 8);
+    }
+
+    #[test]
+    fn a_config_file_changes_the_fields_it_names_in_the_preset() {
+        let (dir, _) = read("");
+        std::fs::write(dir.path().join("partial.toml"), "steps = 7\n").unwrap();
+        let path = dir.path().join("sweep.toml");
+        // The preset's warm-up shortened to the steps, as `--steps` does.
+        let with_steps = |preset: &str| Config {
+            steps: 7,
+            warmup_steps: 7,
+            ..presets::find(preset).unwrap().config().unwrap()
+        };
+        for (preset, expected) in [
+            ("", with_steps(presets::SPACECRAFT)),
+            ("preset = \"tiny\"\n", with_steps("tiny")),
+        ] {
+            std::fs::write(
+                &path,
+                format!("scene = \"synthetic\"\n{preset}config = \"partial.toml\"\n"),
+            )
+            .unwrap();
+            assert_eq!(Sweep::read(&path).unwrap().base, expected, "{preset}");
+        }
     }
 }
