@@ -1,7 +1,7 @@
 //! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed, and
 //! with `--profile` where a step's and a rendered view's time goes, stage by stage.
 
-use super::{CliResult, DataArgs, FIT_STEPS, Fallible, choose_box, open_dataset, with_trainer};
+use super::{CliResult, DataArgs, Fallible, choose_box, open_dataset, with_trainer};
 use clap::Args;
 use orbit_nerf_core::{Config, Trainer};
 use orbit_nerf_host::dataset::Dataset;
@@ -150,7 +150,8 @@ pub fn run(args: &BenchArgs) -> CliResult {
     Ok(())
 }
 
-/// What the timed steps were, for the profile report.
+/// What the timed steps were, for the profile report (read only by the `profile` build).
+#[cfg_attr(not(feature = "profile"), allow(dead_code))]
 struct Timed<'d> {
     threads: usize,
     steps: u32,
@@ -193,6 +194,7 @@ fn profile_report(
     timed: &Timed<'_>,
     args: &BenchArgs,
 ) -> Fallible<String> {
+    use super::FIT_STEPS;
     use orbit_nerf_host::profile::{Breakdown, write_chart};
     let profile = trainer.profile();
     let step = Breakdown {
@@ -232,10 +234,15 @@ fn profile_report(
     };
     trainer.set_clock(None);
     let threads = timed.threads;
+    let fit = if mean.is_empty() {
+        "no appearance embedding to fit".to_string()
+    } else {
+        format!("{FIT_STEPS} embedding-fit steps on the left half")
+    };
     let text = format!(
         "### {threads} thread(s): a training step (mean of {} steps)\n\n{}\n\
-         ### {threads} thread(s): a held-out view ({FIT_STEPS} embedding-fit steps, then the \
-         whole view; mean of {} views)\n\n{}\n",
+         ### {threads} thread(s): a held-out view ({fit}, then the whole view; mean of {} \
+         views)\n\n{}\n",
         step.count,
         step.table("step"),
         view.count,
