@@ -157,6 +157,129 @@ fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     }
 }
 
+/// Timing a run (the host's clock lent to the core's stage timers) changes no bit of it: the
+/// checkpoint and a fitted, rendered held-out view equal those of the same run untimed. Every
+/// stage of a step gets some time, and the stages' wall times add up to no more than the time
+/// measured around the steps (the timers nest inside it; 1 ms of slack for clock reads).
+#[cfg(feature = "profile")]
+#[test]
+fn profiling_changes_no_bit_and_times_every_stage() {
+    use orbit_nerf_core::profile::{Profile, Stage};
+    use orbit_nerf_host::profile::clock_ns;
+    let Some(data) = lego() else { return };
+    let mut config = tiny_config();
+    config.steps = 40;
+    config.warmup_steps = 16;
+    config.occupancy_every = 8;
+    config.embedding_dim = 4;
+    config.pose_correction = true;
+    config.pose_warmup_steps = 10;
+    let (train_idx, test_idx) = dataset::split_every(data.frames.len(), 8);
+    let run = |timed: bool| -> (Vec<u8>, Vec<f32>, Profile, u64, u64) {
+        let plan = MemoryPlan::new(&config);
+        let mut arena = vec![0u8; plan.total];
+        let mut trainer = Trainer::new(config, &mut arena).unwrap();
+        train::load_frames(
+            &mut trainer,
+            train_idx.iter().take(16).map(|&i| &data.frames[i]),
+        )
+        .unwrap();
+        if timed {
+            trainer.set_clock(Some(clock_ns));
+        }
+        let executor = RayonExecutor::new(2).unwrap();
+        let start = std::time::Instant::now();
+        for _ in 0..config.steps {
+            trainer.step(&executor).unwrap();
+        }
+        let steps_ns = start.elapsed().as_nanos() as u64;
+        let frame = &data.frames[test_idx[0]];
+        let mut embedding = vec![0.0f32; 4];
+        trainer.mean_embedding(&mut embedding);
+        let mut image = vec![0.0f32; frame.camera.pixel_count() * 3];
+        let start = std::time::Instant::now();
+        let w = frame.camera.width as u32;
+        trainer
+            .fit_embedding(
+                &executor,
+                &frame.camera,
+                &frame.pose,
+                &frame.pixels,
+                (0, w / 2),
+                5,
+                &mut embedding,
+            )
+            .unwrap();
+        trainer
+            .render(
+                &executor,
+                &frame.camera,
+                &frame.pose,
+                &embedding,
+                &mut image,
+            )
+            .unwrap();
+        let view_ns = start.elapsed().as_nanos() as u64;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.onrf");
+        train::save_checkpoint(&path, &trainer).unwrap();
+        let bytes = std::fs::read(path).unwrap();
+        (bytes, image, trainer.profile(), steps_ns, view_ns)
+    };
+    let (plain, plain_image, untimed, _, _) = run(false);
+    let (timed, timed_image, profile, steps_ns, view_ns) = run(true);
+    assert!(plain == timed, "timing the steps changed the checkpoint");
+    assert!(
+        plain_image
+            .iter()
+            .zip(&timed_image)
+            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        "timing changed the rendered view"
+    );
+    assert_eq!(
+        untimed,
+        Profile::default(),
+        "without a clock nothing is timed"
+    );
+    let slack = 1_000_000;
+    for stage in &Stage::ALL[..Stage::ALL.len() - 1] {
+        assert!(
+            profile.train_wall.get(*stage) > 0,
+            "{}: no wall time",
+            stage.name()
+        );
+        assert!(
+            profile.train_cpu.get(*stage) > 0,
+            "{}: no CPU time",
+            stage.name()
+        );
+    }
+    assert_eq!(profile.train_wall.get(Stage::FitEmbedding), 0);
+    assert!(
+        profile.train_wall.total() <= steps_ns + slack,
+        "stages {} ns > steps {steps_ns} ns",
+        profile.train_wall.total()
+    );
+    for stage in [
+        Stage::FitEmbedding,
+        Stage::Marching,
+        Stage::DensityForward,
+        Stage::ColourForward,
+        Stage::Compositing,
+    ] {
+        assert!(
+            profile.render_wall.get(stage) > 0,
+            "view, {}: no time",
+            stage.name()
+        );
+    }
+    assert!(
+        profile.render_wall.total() <= view_ns + slack,
+        "view stages {} ns > view {view_ns} ns",
+        profile.render_wall.total()
+    );
+}
+
 /// The `[bytes]` table and the cap of a budget file.
 fn budget(name: &str) -> (Config, toml::Table, usize) {
     let path = root().join("budgets").join(name);

@@ -11,8 +11,8 @@ use orbit_nerf_host::checkpoint;
 use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::sim::{self, Scene};
 use orbit_nerf_host::stream::{
-    self, Control, DatasetSource, Event, FrameSource, Outcome, StreamSettings, StreamState,
-    WatchOptions, WatchedFolder,
+    self, Control, DatasetSource, Event, FixedSetPoint, FrameSource, Outcome, StreamSettings,
+    StreamState, WatchOptions, WatchedFolder,
 };
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
@@ -98,6 +98,44 @@ fn stream_api(
     (outcome, state)
 }
 
+/// The curve of the stream saved at `checkpoint` scored on all its held-out views.
+fn fixed_set(
+    checkpoint: &Path,
+    state: &StreamState,
+    source: &dyn FrameSource,
+) -> Vec<FixedSetPoint> {
+    let (_, config, _) = stream::load(checkpoint).unwrap();
+    let executor = RayonExecutor::new(2).unwrap();
+    stream::fixed_set_curve(
+        checkpoint,
+        source,
+        state,
+        &config,
+        &executor,
+        None,
+        &mut |_| {},
+    )
+    .unwrap()
+}
+
+/// The `fixed_*` columns of each row of a stream's anytime.csv (the curve on all held-out
+/// views), as text.
+fn fixed_set_columns(csv: &Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let columns: Vec<usize> = (0..header.len())
+        .filter(|&i| header[i].starts_with("fixed_"))
+        .collect();
+    assert_eq!(columns.len(), 5, "{header:?}");
+    lines
+        .map(|line| {
+            let cells: Vec<&str> = line.split(',').collect();
+            columns.iter().map(|&i| cells[i].to_string()).collect()
+        })
+        .collect()
+}
+
 /// The trainer's sections of a checkpoint (everything but the stream's own record, which
 /// also holds wall times).
 fn trainer_sections(path: &Path) -> Vec<(String, Vec<u8>)> {
@@ -164,6 +202,35 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
         trainer_sections(&parts) == trainer_sections(&whole),
         "the resumed run's parameters, moments, occupancy or frames differ"
     );
+    // Every point of the curve is scored again on the same views, all three held out; the
+    // snapshots the stopped run wrote serve the resumed one, and give the same figures.
+    let whole_fixed = fixed_set(&whole, &whole_state, &open());
+    assert_eq!(whole_fixed.len(), whole_state.curve.len());
+    assert!(whole_fixed.iter().all(|p| p.views == 3), "{whole_fixed:?}");
+    let last = (
+        &whole_fixed[whole_fixed.len() - 1],
+        &whole_state.curve[whole_state.curve.len() - 1],
+    );
+    assert_eq!(last.1.held_out_views, 3);
+    assert_eq!(
+        last.0.metrics.psnr_full.to_bits(),
+        last.1.psnr.to_bits(),
+        "the last point already saw every view"
+    );
+    let bits = |points: &[FixedSetPoint]| -> Vec<[u64; 3]> {
+        points
+            .iter()
+            .map(|p| {
+                [
+                    p.metrics.psnr_full.to_bits(),
+                    p.metrics.ssim_full.to_bits(),
+                    p.metrics.psnr_right.to_bits(),
+                ]
+            })
+            .collect()
+    };
+    let resumed_fixed = fixed_set(&parts, &resumed, &open());
+    assert_eq!(bits(&resumed_fixed), bits(&whole_fixed));
     // Pacing the source changes nothing either.
     let paced = dir.join("paced.onrf");
     let mut paced_source = DatasetSource::open(&data, None, Some(200.0)).unwrap();
@@ -261,6 +328,15 @@ fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
                 == trainer_sections(&whole.join("checkpoint.onrf")),
             "{}: the resumed binary's final state differs from the uninterrupted one",
             out.display()
+        );
+        let fixed = fixed_set_columns(&out.join("anytime.csv"));
+        assert_eq!(fixed, fixed_set_columns(&whole.join("anytime.csv")));
+        let views: Vec<&str> = fixed.iter().map(|row| row[0].as_str()).collect();
+        assert!(
+            views
+                .iter()
+                .all(|v| *v == views[0] && *v != "0" && !v.is_empty()),
+            "every point scores the same held-out views: {views:?}"
         );
     };
 

@@ -7,10 +7,13 @@ pub mod error;
 pub mod formats;
 pub mod geometry;
 pub mod io;
+pub mod machine;
 pub mod memory;
 pub mod metrics;
 pub mod orbit;
 pub mod presets;
+#[cfg(feature = "profile")]
+pub mod profile;
 pub mod report;
 pub mod scene_box;
 pub mod sim;

@@ -15,6 +15,7 @@ pub mod config;
 pub(crate) mod field;
 pub(crate) mod frames;
 pub(crate) mod optim;
+pub mod profile;
 pub(crate) mod render;
 pub mod replacement;
 pub mod rng;

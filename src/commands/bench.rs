@@ -1,16 +1,21 @@
-//! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed.
+//! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed, and
+//! with `--profile` where a step's and a rendered view's time goes, stage by stage.
 
 use super::{
-    CliResult, DataArgs, choose_box, config_for_data, open_dataset, preset_parser, with_trainer,
+    CliResult, DataArgs, Fallible, choose_box, config_for_data, open_dataset, preset_parser,
+    with_trainer,
 };
 use clap::Args;
+use orbit_nerf_core::Trainer;
+use orbit_nerf_host::dataset::Dataset;
+use orbit_nerf_host::machine;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Dataset to train on (default: the lego scene).
+    /// Dataset to train on (default: the lego scene, relative to the working directory).
     #[arg(long, default_value = "../shared/data/nerf_synthetic/lego")]
     data: PathBuf,
     /// Resize images so the longer side has at most this many pixels (never upsampled).
@@ -32,9 +37,31 @@ pub struct BenchArgs {
     /// Config file (TOML) of the fields to change in the preset's config (see budgets/).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Also time each stage of the timed steps and of rendering every held-out view
+    /// (embedding fit on the left half, then the whole view), and print the tables. The
+    /// throughput rows are then measured with the timers running.
+    #[arg(long)]
+    profile: bool,
+    /// With --profile: write the tables (profile.md) and a stacked bar chart per thread
+    /// count (profile_<threads>t.png) into this folder.
+    #[arg(long, requires = "profile")]
+    out: Option<PathBuf>,
 }
 
 pub fn run(args: &BenchArgs) -> CliResult {
+    if !args.data.is_dir() {
+        return Err(format!(
+            "--data {}: no such dataset folder (the default is relative to the working \
+             directory: run bench from a checkout beside shared/, or pass --data DIR)",
+            args.data.display()
+        )
+        .into());
+    }
+    check_profile_build(args)?;
+    if let Some(out) = &args.out {
+        std::fs::create_dir_all(out).map_err(|e| format!("--out {}: {e}", out.display()))?;
+    }
+    println!("{}", machine::cpu_summary());
     let mut base = config_for_data(args.preset.as_deref(), &args.data, args.config.as_deref())?;
     let data = DataArgs {
         data: args.data.clone(),
@@ -42,9 +69,10 @@ pub fn run(args: &BenchArgs) -> CliResult {
         holdout: 8,
         no_masks: false,
     };
-    let (mut dataset, train_idx, _) = open_dataset(&data)?;
+    let (mut dataset, train_idx, test_idx) = open_dataset(&data)?;
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
     base.steps = args.warmup + args.steps;
+    base.warmup_steps = base.warmup_steps.min(base.steps);
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
     println!(
@@ -66,12 +94,14 @@ pub fn run(args: &BenchArgs) -> CliResult {
         "{:>7}  {:>12}  {:>10}  {:>11}  {:>14}  {:>9}",
         "threads", "samples/s", "rays/s", "samples/ray", "marched/ray", "ms/step"
     );
+    let mut report = String::new();
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
         with_trainer(config, None, &frames, |trainer| {
             for _ in 0..args.warmup {
                 trainer.step(&executor)?;
             }
+            start_profile(trainer, args.profile);
             let (mut rays, mut samples, mut marched) = (0u64, 0u64, 0u64);
             let start = Instant::now();
             for _ in 0..args.steps {
@@ -80,7 +110,8 @@ pub fn run(args: &BenchArgs) -> CliResult {
                 samples += r.samples as u64;
                 marched += r.samples_marched as u64;
             }
-            let seconds = start.elapsed().as_secs_f64();
+            let elapsed = start.elapsed();
+            let seconds = elapsed.as_secs_f64();
             println!(
                 "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
                 samples as f64 / seconds,
@@ -89,9 +120,148 @@ pub fn run(args: &BenchArgs) -> CliResult {
                 marched as f64 / rays.max(1) as f64,
                 1000.0 * seconds / args.steps as f64
             );
+            if args.profile {
+                let timed = Timed {
+                    threads,
+                    steps: args.steps,
+                    steps_ns: elapsed.as_nanos() as u64,
+                    dataset: &dataset,
+                    views: &test_idx,
+                };
+                report.push_str(&profile_report(trainer, &executor, &timed, args)?);
+            }
             Ok(())
         })?;
     }
     println!("samples/s counts samples through forward + backward + update (after the early stop)");
+    if let (Some(out), false) = (&args.out, report.is_empty()) {
+        let path = out.join("profile.md");
+        orbit_nerf_host::io::write_atomic(&path, report.as_bytes())?;
+        println!("wrote {}", path.display());
+    }
     Ok(())
+}
+
+/// What the timed steps were, for the profile report (read only by the `profile` build).
+#[cfg_attr(not(feature = "profile"), allow(dead_code))]
+struct Timed<'d> {
+    threads: usize,
+    steps: u32,
+    steps_ns: u64,
+    dataset: &'d Dataset,
+    views: &'d [usize],
+}
+
+#[cfg(feature = "profile")]
+fn check_profile_build(_: &BenchArgs) -> CliResult {
+    Ok(())
+}
+
+#[cfg(not(feature = "profile"))]
+fn check_profile_build(args: &BenchArgs) -> CliResult {
+    if args.profile {
+        return Err("--profile: this binary was built without the `profile` feature".into());
+    }
+    Ok(())
+}
+
+/// Lend the trainer the host's clock (forgetting the warm-up's times) when profiling.
+#[cfg(feature = "profile")]
+fn start_profile(trainer: &mut Trainer<'_>, profile: bool) {
+    if profile {
+        trainer.set_clock(Some(orbit_nerf_host::profile::clock_ns));
+        trainer.reset_profile();
+    }
+}
+
+#[cfg(not(feature = "profile"))]
+fn start_profile(_: &mut Trainer<'_>, _: bool) {}
+
+/// The timed steps' stage times, then every held-out view fitted and rendered with the
+/// clock running: both tables printed (and, with `--out`, a chart written), as markdown.
+#[cfg(feature = "profile")]
+fn profile_report(
+    trainer: &mut Trainer<'_>,
+    executor: &RayonExecutor,
+    timed: &Timed<'_>,
+    args: &BenchArgs,
+) -> Fallible<String> {
+    use super::FIT_STEPS;
+    use orbit_nerf_host::profile::{Breakdown, write_chart};
+    let profile = trainer.profile();
+    let step = Breakdown {
+        cpu: profile.train_cpu,
+        wall: profile.train_wall,
+        elapsed_ns: timed.steps_ns,
+        count: timed.steps,
+    };
+    trainer.reset_profile();
+    let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
+    trainer.mean_embedding(&mut mean);
+    let start = Instant::now();
+    for &index in timed.views {
+        let frame = &timed.dataset.frames[index];
+        let mut embedding = mean.clone();
+        let width = frame.camera.width as u32;
+        if !embedding.is_empty() {
+            trainer.fit_embedding(
+                executor,
+                &frame.camera,
+                &frame.pose,
+                &frame.pixels,
+                (0, width / 2),
+                FIT_STEPS,
+                &mut embedding,
+            )?;
+        }
+        let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
+        trainer.render(executor, &frame.camera, &frame.pose, &embedding, &mut out)?;
+    }
+    let profile = trainer.profile();
+    let view = Breakdown {
+        cpu: profile.render_cpu,
+        wall: profile.render_wall,
+        elapsed_ns: start.elapsed().as_nanos() as u64,
+        count: timed.views.len() as u32,
+    };
+    trainer.set_clock(None);
+    let threads = timed.threads;
+    let fit = if mean.is_empty() {
+        "no appearance embedding to fit".to_string()
+    } else {
+        format!("{FIT_STEPS} embedding-fit steps on the left half")
+    };
+    let text = format!(
+        "### {threads} thread(s): a training step (mean of {} steps)\n\n{}\n\
+         ### {threads} thread(s): a held-out view ({fit}, then the whole view; mean of {} \
+         views)\n\n{}\n",
+        step.count,
+        step.table("step"),
+        view.count,
+        view.table("view"),
+    );
+    println!("\n{text}");
+    if let Some(out) = &args.out {
+        let path = out.join(format!("profile_{threads}t.png"));
+        let title = format!(
+            "{}: where the time goes, {threads} thread(s)",
+            args.data.file_name().map_or_else(
+                || args.data.display().to_string(),
+                |n| n.to_string_lossy().into()
+            )
+        );
+        write_chart(&path, &title, &step, &view)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(text)
+}
+
+#[cfg(not(feature = "profile"))]
+fn profile_report(
+    _: &mut Trainer<'_>,
+    _: &RayonExecutor,
+    _: &Timed<'_>,
+    _: &BenchArgs,
+) -> Fallible<String> {
+    Err("--profile: this binary was built without the `profile` feature".into())
 }

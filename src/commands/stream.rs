@@ -122,7 +122,9 @@ pub struct StreamArgs {
     /// Worker threads, 1 to 1024 (results do not depend on it).
     #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=1024))]
     pub threads: usize,
-    /// Output folder: checkpoint.onrf, anytime.csv, anytime.png, summary.md, metrics.json.
+    /// Output folder: checkpoint.onrf (and the anytime points' model snapshots in
+    /// checkpoint.snapshots/), anytime.csv, anytime.png, anytime_time.png, summary.md,
+    /// metrics.json.
     #[arg(long, default_value = "runs/stream")]
     pub out: PathBuf,
 }
@@ -310,9 +312,9 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
                 bar.inc(1);
             }
             Event::Anytime(point) => {
-                last_quality = format!("held-out {:.2} dB", point.psnr);
+                last_quality = format!("held-out so far {:.2} dB", point.psnr);
                 bar.suspend(|| println!(
-                    "{:>4} frames seen, {:>3} held, {:>5} steps: held-out PSNR {:.2} dB, SSIM {:.4} ({} views), {:.2} s/frame, RSS {:.1} MiB",
+                    "{:>4} frames seen, {:>3} held, {:>5} steps: PSNR {:.2} dB, SSIM {:.4} on the {} held-out views seen so far, {:.2} s/frame, RSS {:.1} MiB",
                     point.frames_seen,
                     point.frames_held,
                     point.steps,
@@ -328,8 +330,8 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     )?;
     bar.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
-    stream::write_curve(&args.out, &state.curve)?;
     if outcome == Outcome::Stopped {
+        stream::write_curve(&args.out, &state.curve, None, None)?;
         println!(
             "stopped after {} arrivals; checkpoint {} (continue with --resume)",
             state.position,
@@ -337,6 +339,7 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         );
         return Ok(());
     }
+    let fixed = fixed_set(args, source, &state, &config, &checkpoint_path, &executor)?;
     let offline = if args.compare_offline {
         Some(offline(
             source,
@@ -348,33 +351,75 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     } else {
         None
     };
+    stream::write_curve(
+        &args.out,
+        &state.curve,
+        Some(&fixed),
+        offline.as_ref().map(|(points, _)| points.as_slice()),
+    )?;
+    let offline = offline.and_then(|(points, seconds)| Some((points.last()?.metrics, seconds)));
     let summary = summary(&state, &trainer, seconds, offline.as_ref());
     orbit_nerf_host::io::write_atomic(&args.out.join("summary.md"), summary.as_bytes())?;
     figures(&state, &trainer, seconds, offline.as_ref()).write(&args.out)?;
     print!("{summary}");
     println!(
-        "checkpoint, anytime.csv, anytime.png, summary.md and metrics.json in {}",
+        "checkpoint (snapshots beside it), anytime.csv, anytime.png, anytime_time.png, summary.md and metrics.json in {}",
         args.out.display()
     );
     Ok(())
 }
 
-/// Train and score the offline reference, with a progress bar.
+/// Score every anytime point's snapshot on all the stream's held-out views, with a progress
+/// bar.
+fn fixed_set(
+    args: &StreamArgs,
+    source: &dyn FrameSource,
+    state: &StreamState,
+    config: &Config,
+    checkpoint_path: &Path,
+    executor: &RayonExecutor,
+) -> Fallible<Vec<stream::FixedSetPoint>> {
+    let bar = ProgressBar::new(state.curve.len() as u64).with_style(bar_style(
+        "scoring the snapshots on all held-out views [{bar:30}] {pos}/{len} {per_sec} eta {eta}",
+    )?);
+    let points = stream::fixed_set_curve(
+        checkpoint_path,
+        source,
+        state,
+        config,
+        executor,
+        args.memory_limit,
+        &mut |_| bar.inc(1),
+    )?;
+    bar.finish_and_clear();
+    Ok(points)
+}
+
+/// Train the offline reference, scoring it at the step counts of the stream's points, with a
+/// progress bar. Returns its points and its wall time (training and scoring).
 fn offline(
     source: &dyn FrameSource,
     state: &StreamState,
     config: &Config,
     steps: u32,
     executor: &RayonExecutor,
-) -> Fallible<(ViewMetrics, f64)> {
+) -> Fallible<(Vec<stream::OfflinePoint>, f64)> {
     let bar = ProgressBar::new(steps as u64).with_style(bar_style(
         "offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}",
     )?);
     let start = Instant::now();
-    let metrics =
-        stream::offline_reference(source, state, config, steps, executor, &mut |_| bar.inc(1))?;
+    let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
+    let points = stream::offline_reference(
+        source,
+        state,
+        config,
+        steps,
+        &at_steps,
+        executor,
+        &mut |_| bar.inc(1),
+    )?;
     bar.finish_and_clear();
-    Ok((metrics, start.elapsed().as_secs_f64()))
+    Ok((points, start.elapsed().as_secs_f64()))
 }
 
 /// The summary's models for `metrics.json`: the streamed model at its last held-out score,

@@ -10,6 +10,8 @@
 //! tick labels and legends, so no system font (absent on CI machines) is ever needed.
 //! `plotters` draws the plot geometry (grid, frame, ticks, series) with its bitmap backend only.
 
+#[cfg(feature = "profile")]
+mod bars;
 mod canvas;
 mod figures;
 mod plot;
@@ -19,6 +21,8 @@ mod strip;
 mod tables;
 mod views;
 
+#[cfg(feature = "profile")]
+pub use bars::stacked_bars;
 pub use figures::{FIGURES_SCHEMA, Figures, ModelFigures, TrainingFigures, ViewFigures};
 pub use plot::line_plot;
 pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};

@@ -268,7 +268,7 @@ fn data_range(values: impl Iterator<Item = f64>, padding: f64) -> Range<f64> {
 
 /// Tick values printed with the fewest decimals (up to 6) that keep them distinct and exact to
 /// a millionth of the tick spacing; scientific notation for very large or very small values.
-fn tick_labels(ticks: &[f64]) -> Vec<String> {
+pub(super) fn tick_labels(ticks: &[f64]) -> Vec<String> {
     let spacing = ticks
         .windows(2)
         .map(|pair| (pair[1] - pair[0]).abs())

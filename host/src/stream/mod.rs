@@ -6,7 +6,11 @@
 //! - Every `holdout_every`-th usable frame is held out for the anytime-quality curve: every
 //!   `eval_every` usable frames the held-out views seen so far are scored as `train::evaluate`
 //!   scores them (embedding fitted on the left half), with the frames seen and held, the steps,
-//!   the wall time per frame and the resident memory of the process.
+//!   the wall time and the resident memory of the process. Those views differ from point to
+//!   point, so each point also saves a snapshot of the model (what rendering and the
+//!   embedding fit read: planes, MLP, occupancy bits, the slots' embeddings; next to the
+//!   checkpoint, in `<checkpoint>.snapshots/`), and at the end [`fixed_set_curve`] scores
+//!   every snapshot on all the stream's held-out views: the curve on one fixed set.
 //! - Bad frames (unreadable or wrong-size image, missing or malformed label, non-finite pose,
 //!   all-black or all-saturated image) are reported once and skipped; nothing learned is lost.
 //! - The checkpoint holds the trainer's whole state plus a `stream` section ([`StreamState`]),
@@ -73,6 +77,9 @@ pub struct AnytimePoint {
     pub psnr_foreground: f64,
     /// Mean wall time per arrival since the previous point (ingest and training, not waiting).
     pub seconds_per_frame: f64,
+    /// Wall time of ingest and training since the stream started (across resumes; not
+    /// waiting, scoring or checkpointing).
+    pub seconds: f64,
     /// Resident memory of the process (MiB), NaN where it cannot be read.
     pub rss_mib: f64,
 }
@@ -115,6 +122,8 @@ pub struct StreamState {
     pub slot_positions: Vec<Option<u64>>,
     pub bad: Vec<BadFrame>,
     pub curve: Vec<AnytimePoint>,
+    /// Wall time of ingest and training so far (the curve's `seconds`).
+    pub seconds: f64,
 }
 
 impl StreamState {
@@ -132,6 +141,7 @@ impl StreamState {
             slot_positions: vec![None; capacity],
             bad: Vec::new(),
             curve: Vec::new(),
+            seconds: 0.0,
         }
     }
 }
@@ -294,7 +304,9 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             }
         }
         window_frames += 1;
-        window_seconds += started.elapsed().as_secs_f64();
+        let seconds = started.elapsed().as_secs_f64();
+        window_seconds += seconds;
+        state.seconds += seconds;
         if was_usable
             && state
                 .usable
@@ -302,6 +314,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         {
             let per_frame = window_seconds / window_frames as f64;
             let point = anytime_point(trainer, executor, source, state, per_frame)?;
+            save_snapshot(control.checkpoint, state.curve.len(), trainer)?;
             on_event(&Event::Anytime(&point));
             state.curve.push(point);
             (window_frames, window_seconds) = (0, 0.0);
@@ -321,6 +334,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
     {
         let per_frame = window_seconds / window_frames.max(1) as f64;
         let point = anytime_point(trainer, executor, source, state, per_frame)?;
+        save_snapshot(control.checkpoint, state.curve.len(), trainer)?;
         on_event(&Event::Anytime(&point));
         state.curve.push(point);
     }
@@ -448,6 +462,22 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
     Ok((report::mean_metrics(&per_view), per_view.len()))
 }
 
+/// [`held_out_quality`] on the stream's held-out views so far, with its fit steps.
+fn held_out_views_quality<E: Executor, S: FrameSource + ?Sized>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    source: &S,
+    state: &StreamState,
+) -> Result<(ViewMetrics, usize)> {
+    held_out_quality(
+        trainer,
+        executor,
+        source,
+        &state.held_out,
+        state.settings.fit_steps,
+    )
+}
+
 fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
     trainer: &mut Trainer<'_>,
     executor: &E,
@@ -455,13 +485,7 @@ fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
     state: &StreamState,
     seconds_per_frame: f64,
 ) -> Result<AnytimePoint> {
-    let (metrics, views) = held_out_quality(
-        trainer,
-        executor,
-        source,
-        &state.held_out,
-        state.settings.fit_steps,
-    )?;
+    let (metrics, views) = held_out_views_quality(trainer, executor, source, state)?;
     Ok(AnytimePoint {
         frames_seen: state.position,
         frames_held: trainer.frames().len(),
@@ -473,8 +497,97 @@ fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
         ssim_right: metrics.ssim_right,
         psnr_foreground: metrics.psnr_foreground,
         seconds_per_frame,
+        seconds: state.seconds,
         rss_mib: resident_mib(),
     })
+}
+
+/// The trainer's sections a snapshot keeps: all that rendering and fitting a held-out view's
+/// embedding read (the slots' metadata and parameters give the mean starting embedding).
+const SNAPSHOT_SECTIONS: [&str; 6] = [
+    "state",
+    "planes",
+    "mlp",
+    "occupancy_bits",
+    "frame_meta",
+    "frame_params",
+];
+
+/// Where the snapshot of anytime point `index` of the stream checkpointed at `checkpoint` is.
+pub fn snapshot_path(checkpoint: &Path, index: usize) -> std::path::PathBuf {
+    checkpoint
+        .with_extension("snapshots")
+        .join(format!("point_{index:03}.onrf"))
+}
+
+/// Save the model as anytime point `index` sees it (written atomically; a resumed stream
+/// writes the same bytes again for a point it repeats).
+fn save_snapshot(checkpoint_path: &Path, index: usize, trainer: &Trainer<'_>) -> Result<()> {
+    let path = snapshot_path(checkpoint_path, index);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| HostError::io(dir, e))?;
+    }
+    let mut snapshot = train::checkpoint_of(&path, trainer)?;
+    snapshot
+        .sections
+        .retain(|s| SNAPSHOT_SECTIONS.contains(&s.name.as_str()));
+    checkpoint::save(&path, &snapshot)
+}
+
+/// A point of the curve on the fixed set: every held-out view of the stream, scored with the
+/// model as the stream's point `index` saw it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FixedSetPoint {
+    /// Means over the views (`report::mean_metrics`).
+    pub metrics: ViewMetrics,
+    /// Views scored (all the stream's held-out views that still read).
+    pub views: usize,
+}
+
+/// Score every anytime point's snapshot on all the stream's held-out views (read again from
+/// the source), one point after another in one extra arena of the stream's config (checked
+/// against `memory_limit` before it is allocated).
+pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
+    checkpoint_path: &Path,
+    source: &S,
+    state: &StreamState,
+    config: &Config,
+    executor: &E,
+    memory_limit: Option<u64>,
+    on_point: &mut dyn FnMut(usize),
+) -> Result<Vec<FixedSetPoint>> {
+    let plan = MemoryPlan::new(config);
+    crate::memory::check_arena(
+        Path::new("the model scoring the stream's snapshots"),
+        &plan,
+        crate::memory::limit_or_default(memory_limit),
+    )?;
+    let mut arena = vec![0u8; plan.total];
+    let mut points = Vec::with_capacity(state.curve.len());
+    for index in 0..state.curve.len() {
+        let path = snapshot_path(checkpoint_path, index);
+        let snapshot = checkpoint::load(&path)?;
+        if train::checkpoint_config(&path, &snapshot)? != *config {
+            return Err(HostError::invalid(
+                &path,
+                "written by a stream with another config",
+            ));
+        }
+        arena.fill(0);
+        let mut trainer = Trainer::new(*config, &mut arena).map_err(|e| core_error(&path, e))?;
+        for name in SNAPSHOT_SECTIONS {
+            let bytes = snapshot
+                .section(name)
+                .map_err(|_| HostError::field(&path, name, "missing section"))?;
+            trainer
+                .restore_section(name, bytes)
+                .map_err(|e| HostError::field(&path, name, e.to_string()))?;
+        }
+        let (metrics, views) = held_out_views_quality(&mut trainer, executor, source, state)?;
+        points.push(FixedSetPoint { metrics, views });
+        on_point(index);
+    }
+    Ok(points)
 }
 
 /// Name of the checkpoint section holding the [`StreamState`].
@@ -534,15 +647,33 @@ pub fn resume<S: FrameSource + ?Sized>(
     Ok((checkpoint, config, state))
 }
 
-/// The anytime curve as CSV.
-pub fn curve_csv(curve: &[AnytimePoint]) -> String {
+/// A point of the offline reference's curve: its quality on the stream's held-out views
+/// after `steps` steps, and the wall time its training had taken by then.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OfflinePoint {
+    pub steps: u32,
+    /// Training wall time up to `steps` (not the scoring).
+    pub seconds: f64,
+    pub metrics: ViewMetrics,
+}
+
+/// The anytime curve as CSV: each point's seen-so-far scores, then (when given, else empty
+/// cells) its scores on the fixed set of all held-out views and the offline reference's at
+/// the same step count.
+pub fn curve_csv(
+    curve: &[AnytimePoint],
+    fixed: Option<&[FixedSetPoint]>,
+    offline: Option<&[OfflinePoint]>,
+) -> String {
     let mut csv = String::from(
-        "frames_seen,frames_held,held_out_views,steps,psnr,ssim,psnr_right,ssim_right,psnr_foreground,seconds_per_frame,rss_mib\n",
+        "frames_seen,frames_held,held_out_views,steps,psnr,ssim,psnr_right,ssim_right,psnr_foreground,seconds_per_frame,seconds,rss_mib,\
+         fixed_views,fixed_psnr,fixed_ssim,fixed_psnr_right,fixed_psnr_foreground,\
+         offline_seconds,offline_psnr,offline_ssim,offline_psnr_right,offline_psnr_foreground\n",
     );
-    for p in curve {
-        let _ = writeln!(
+    for (i, p) in curve.iter().enumerate() {
+        let _ = write!(
             csv,
-            "{},{},{},{},{:.4},{:.5},{:.4},{:.5},{:.4},{:.5},{:.2}",
+            "{},{},{},{},{:.4},{:.5},{:.4},{:.5},{:.4},{:.5},{:.3},{:.2}",
             p.frames_seen,
             p.frames_held,
             p.held_out_views,
@@ -553,42 +684,113 @@ pub fn curve_csv(curve: &[AnytimePoint]) -> String {
             p.ssim_right,
             p.psnr_foreground,
             p.seconds_per_frame,
+            p.seconds,
             p.rss_mib
         );
+        let cells = |first: String, m: &ViewMetrics| {
+            format!(
+                ",{first},{:.4},{:.5},{:.4},{:.4}",
+                m.psnr_full, m.ssim_full, m.psnr_right, m.psnr_foreground
+            )
+        };
+        let empty = ",,,,,".to_string();
+        csv.push_str(&match fixed.and_then(|f| f.get(i)) {
+            Some(f) => cells(f.views.to_string(), &f.metrics),
+            None => empty.clone(),
+        });
+        csv.push_str(
+            &match offline.and_then(|o| o.iter().find(|o| o.steps == p.steps)) {
+                Some(o) => cells(format!("{:.3}", o.seconds), &o.metrics),
+                None => empty,
+            },
+        );
+        csv.push('\n');
     }
     csv
 }
 
-/// Write `anytime.csv` and `anytime.png` (held-out PSNR against frames seen) into `dir`,
-/// atomically.
-pub fn write_curve(dir: &Path, curve: &[AnytimePoint]) -> Result<()> {
-    crate::io::write_atomic(&dir.join("anytime.csv"), curve_csv(curve).as_bytes())?;
-    let series = |f: fn(&AnytimePoint) -> f64| -> Vec<(f64, f64)> {
-        curve.iter().map(|p| (p.frames_seen as f64, f(p))).collect()
+/// Write `anytime.csv`, `anytime.png` (held-out PSNR against frames seen) and
+/// `anytime_time.png` (against wall time) into `dir`, atomically. The plots show the
+/// seen-so-far scores, and the fixed set's and the offline reference's when given (the
+/// offline reference placed at the frames the stream had seen after as many steps).
+pub fn write_curve(
+    dir: &Path,
+    curve: &[AnytimePoint],
+    fixed: Option<&[FixedSetPoint]>,
+    offline: Option<&[OfflinePoint]>,
+) -> Result<()> {
+    crate::io::write_atomic(
+        &dir.join("anytime.csv"),
+        curve_csv(curve, fixed, offline).as_bytes(),
+    )?;
+    let fixed_points = |x: fn(&AnytimePoint) -> f64| -> Vec<(f64, f64)> {
+        curve
+            .iter()
+            .zip(fixed.unwrap_or(&[]))
+            .map(|(p, f)| (x(p), f.metrics.psnr_full))
+            .collect()
     };
+    let offline_points = |x: fn(&AnytimePoint, &OfflinePoint) -> f64| -> Vec<(f64, f64)> {
+        curve
+            .iter()
+            .filter_map(|p| {
+                let o = offline?.iter().find(|o| o.steps == p.steps)?;
+                Some((x(p, o), o.metrics.psnr_full))
+            })
+            .collect()
+    };
+    let seen_so_far: Vec<(f64, f64)> = curve
+        .iter()
+        .map(|p| (p.frames_seen as f64, p.psnr))
+        .collect();
+    let mut by_frames = vec![("seen so far", seen_so_far)];
+    let mut by_time = Vec::new();
+    if fixed.is_some() {
+        by_frames.push(("all held-out views", fixed_points(|p| p.frames_seen as f64)));
+        by_time.push(("stream, all held-out views", fixed_points(|p| p.seconds)));
+    }
+    if offline.is_some() {
+        by_frames.push((
+            "offline, same steps",
+            offline_points(|p, _| p.frames_seen as f64),
+        ));
+        by_time.push(("offline, same steps", offline_points(|_, o| o.seconds)));
+    }
     report::line_plot(
         &dir.join("anytime.png"),
         "Anytime quality of a stream",
         "frames seen",
-        "held-out PSNR (dB)",
-        &[
-            ("whole image", series(|p| p.psnr)),
-            ("right half", series(|p| p.psnr_right)),
-        ],
+        "held-out PSNR, whole image (dB)",
+        &by_frames,
+    )?;
+    if by_time.is_empty() {
+        by_time.push((
+            "seen so far",
+            curve.iter().map(|p| (p.seconds, p.psnr)).collect(),
+        ));
+    }
+    report::line_plot(
+        &dir.join("anytime_time.png"),
+        "Anytime quality of a stream",
+        "training wall time (s)",
+        "held-out PSNR, whole image (dB)",
+        &by_time,
     )
 }
 
 /// The offline reference of a finished stream: a fresh model trained on all its usable,
 /// not-held-out frames at once for the same number of steps, scored on the same held-out
-/// views. Reads every training frame into memory (it is the comparison, not the stream).
+/// views after each of `at_steps` steps (and after the last). Reads every training frame into
+/// memory (it is the comparison, not the stream).
 pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
     source: &S,
     state: &StreamState,
     stream_config: &Config,
     steps: u32,
+    at_steps: &[u32],
     executor: &E,
     on_step: &mut dyn FnMut(u32),
-) -> Result<ViewMetrics> {
+) -> Result<Vec<OfflinePoint>> {
     let skipped: Vec<u64> = state
         .bad
         .iter()
@@ -609,18 +811,24 @@ pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
         Trainer::new(config, &mut arena).map_err(|e| core_error(&source.info().name, e))?;
     train::load_frames(&mut trainer, &frames)?;
     drop(frames);
+    let mut points = Vec::new();
+    let mut seconds = 0.0f64;
     for step in 0..config.steps {
+        let started = Instant::now();
         trainer
             .step(executor)
             .map_err(|e| core_error(&source.info().name, e))?;
+        seconds += started.elapsed().as_secs_f64();
         on_step(step);
+        let done = step + 1;
+        if at_steps.contains(&done) || done == config.steps {
+            let (metrics, _) = held_out_views_quality(&mut trainer, executor, source, state)?;
+            points.push(OfflinePoint {
+                steps: done,
+                seconds,
+                metrics,
+            });
+        }
     }
-    let (metrics, _) = held_out_quality(
-        &mut trainer,
-        executor,
-        source,
-        &state.held_out,
-        state.settings.fit_steps,
-    )?;
-    Ok(metrics)
+    Ok(points)
 }

@@ -9,11 +9,16 @@ impl Chunk<'_> {
         let c = shared.config;
         self.report = ChunkReport::default();
         let (first, end) = (self.first_ray, self.first_ray + self.ray_count);
+        let mut laps = shared.timer.laps();
         let rays = self.march_rays(shared, first, end);
+        laps.lap(Stage::Marching, &mut self.times);
         let marched = self.ray_start[rays] as usize;
         self.density_pass(shared, marched);
+        laps.lap(Stage::DensityForward, &mut self.times);
         let n = self.keep_visible(shared, rays);
+        laps.lap(Stage::EarlyStop, &mut self.times);
         self.colour_pass(shared, n);
+        laps.lap(Stage::ColourForward, &mut self.times);
 
         // Loss: sum of squared errors over the batch, normalised by the batch capacity so the
         // gradient scale does not depend on how many rays fit.
@@ -48,10 +53,12 @@ impl Chunk<'_> {
         if shared.pose_gradients {
             self.ray_grads.fill(0.0);
         }
-        self.backward(shared, n);
+        laps.lap(Stage::Compositing, &mut self.times);
+        self.backward(shared, n, &mut laps);
         if shared.pose_gradients {
             self.fold_ray_gradients(shared, rays);
         }
+        laps.lap(Stage::PlaneBackward, &mut self.times);
         self.report = ChunkReport {
             squared_error,
             rays: rays as u32,
@@ -92,7 +99,8 @@ impl Chunk<'_> {
 
     /// Recompute the field for samples `0..n` mini-batch by mini-batch and push the
     /// compositing gradients back to the MLPs, the planes and the embeddings.
-    fn backward(&mut self, shared: &Shared<'_>, n: usize) {
+    /// `laps` charges each mini-batch's parts to their stages.
+    fn backward(&mut self, shared: &Shared<'_>, n: usize, laps: &mut Laps) {
         let c = shared.config;
         let layout = shared.layout;
         let (sh_len, geo_len, dim) = (
@@ -113,6 +121,7 @@ impl Chunk<'_> {
                 self.plane_values,
             );
             Self::colour_forward(self.sample_ray, self.geo, shared, base, lanes, &mut act);
+            laps.lap(Stage::BackwardRecompute, &mut self.times);
 
             // Output gradients; unused lanes stay zero and so contribute nothing.
             for row in grad.rgb.iter_mut().chain(grad.density_out.iter_mut()) {
@@ -164,6 +173,7 @@ impl Chunk<'_> {
                 Some(grad.colour_in),
                 self.lane_major,
             );
+            laps.lap(Stage::ColourBackward, &mut self.times);
             for gi in 0..geo_len {
                 grad.density_out[1 + gi] = grad.colour_in[sh_len + gi];
             }
@@ -203,6 +213,7 @@ impl Chunk<'_> {
                 Some(grad.feats),
                 self.lane_major,
             );
+            laps.lap(Stage::DensityBackward, &mut self.times);
 
             let mut sink = PlaneGrads {
                 grads: self.plane_grads,
@@ -251,6 +262,7 @@ impl Chunk<'_> {
                     }
                 }
             }
+            laps.lap(Stage::PlaneBackward, &mut self.times);
         }
     }
 }

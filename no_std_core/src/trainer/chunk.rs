@@ -59,6 +59,8 @@ pub(super) struct Chunk<'a> {
     pub(super) first_ray: usize,
     pub(super) ray_count: usize,
     pub(super) report: ChunkReport,
+    /// Time this chunk spent per stage since the trainer last collected it (profiling).
+    pub(super) times: StageTimes,
 }
 
 #[derive(Clone, Copy, Default)]
@@ -250,11 +252,16 @@ impl Chunk<'_> {
         while first < end {
             // The config guarantees max_samples_per_ray <= samples_per_chunk, so at least
             // one ray always fits and this loop advances.
+            let mut laps = shared.timer.laps();
             let rays = self.march_rays(shared, first, end).max(1);
+            laps.lap(Stage::Marching, &mut self.times);
             let marched = self.ray_start[rays] as usize;
             self.density_pass(shared, marched);
+            laps.lap(Stage::DensityForward, &mut self.times);
             let n = self.keep_visible(shared, rays);
+            laps.lap(Stage::EarlyStop, &mut self.times);
             self.colour_pass(shared, n);
+            laps.lap(Stage::ColourForward, &mut self.times);
             for r in 0..rays {
                 let (start, stop) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
                 let (colour, _) = render::composite_forward(
@@ -266,6 +273,7 @@ impl Chunk<'_> {
                 let o = (first - self.first_ray + r) * 3;
                 out[o..o + 3].copy_from_slice(&colour);
             }
+            laps.lap(Stage::Compositing, &mut self.times);
             self.report.samples += n as u32;
             first += rays;
         }
@@ -294,6 +302,7 @@ impl Chunk<'_> {
         first_cell: usize,
         cells: &mut [f32],
     ) {
+        let mut laps = shared.timer.laps();
         let c = shared.config;
         let res = c.occupancy_res as usize;
         let size = (shared.aabb.max - shared.aabb.min) / res as f32;
@@ -328,6 +337,7 @@ impl Chunk<'_> {
                 *d = (*d * c.occupancy_decay).max(sigma);
             }
         }
+        laps.lap(Stage::Occupancy, &mut self.times);
     }
 }
 

@@ -53,6 +53,7 @@ impl<'a> Trainer<'a> {
         if x0 >= x1 {
             return Err(Error::InvalidFrame { field: "columns" });
         }
+        let mut laps = self.profile.laps();
         let (mut m, mut v) = ([0.0f32; 128], [0.0f32; 128]);
         let mut mse = 0.0;
         for step in 0..steps {
@@ -74,6 +75,10 @@ impl<'a> Trainer<'a> {
             self.with_chunks(pass, c.rays_per_batch as usize, |shared, chunks| {
                 executor.for_each(chunks, |chunk| chunk.train(shared))
             });
+            let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
+            let only = Some(Stage::FitEmbedding);
+            self.profile
+                .parallel(&mut laps, Bucket::Render, times, only);
             let mut grad = [0.0f32; 128];
             let (mut squared_error, mut rays) = (0.0f32, 0u32);
             for chunk in self.chunks.iter_mut() {
@@ -92,6 +97,8 @@ impl<'a> Trainer<'a> {
             let adam = AdamStep::new(&c, FIT_LEARNING_RATE, step + 1);
             adam.apply(embedding, &grad[..dim], &mut m[..dim], &mut v[..dim]);
         }
+        self.profile
+            .serial(&mut laps, Bucket::Render, Stage::FitEmbedding);
         Ok(mse)
     }
 
@@ -207,12 +214,15 @@ impl<'a> Trainer<'a> {
         let batch = c.rays_per_batch as usize;
         let mut samples = 0u64;
         for first in (0..count_all).step_by(batch) {
+            let mut laps = self.profile.laps();
             let count = batch.min(count_all - first);
             for r in 0..count {
                 let (o, d) = ray(first + r);
                 self.rays[r].origin = o.to_array();
                 self.rays[r].direction = d.to_array();
             }
+            self.profile
+                .serial(&mut laps, Bucket::Render, Stage::RaySampling);
             let out_batch = &mut out[first * 3..(first + count) * 3];
             samples += self.with_chunks(Pass::Render { embedding }, count, |shared, chunks| {
                 let mut jobs: heapless::Vec<(&mut Chunk<'a>, &mut [f32]), MAX_CHUNKS> =
@@ -228,6 +238,9 @@ impl<'a> Trainer<'a> {
                     .map(|(chunk, _)| chunk.report.samples as u64)
                     .sum::<u64>()
             });
+            let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
+            self.profile
+                .parallel(&mut laps, Bucket::Render, times, None);
         }
         Ok(samples as f32 / count_all.max(1) as f32)
     }

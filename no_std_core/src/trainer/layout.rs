@@ -137,6 +137,7 @@ impl<'a> Trainer<'a> {
                 first_ray: i * chunk_rays,
                 ray_count: chunk_rays,
                 report: ChunkReport::default(),
+                times: StageTimes::default(),
             };
             if chunk_list.push(chunk).is_err() {
                 return Err(Error::InvalidConfig { field: "chunks" });
@@ -180,6 +181,7 @@ impl<'a> Trainer<'a> {
             ray_frames,
             chunks: chunk_list,
             state: TrainState::default(),
+            profile: Profiler::default(),
             used,
             training,
         };

@@ -21,6 +21,7 @@ use crate::config::{
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
 use crate::optim::{self, AdamStep};
+use crate::profile::{Bucket, Laps, Profiler, Stage, StageTimes, Timer};
 use crate::render::{self, Aabb, OccupancyView};
 use crate::replacement::{self, Descriptor, Ingested};
 use crate::rng::{self, domain};
@@ -120,6 +121,8 @@ pub struct Trainer<'a> {
     used: MemoryPlan,
     /// False for a render-only trainer ([`Trainer::new_render_only`]).
     training: bool,
+    /// The host's clock and the stage times (feature `profile`; empty without it).
+    profile: Profiler,
 }
 
 /// What the chunks are run for. It decides the appearance embedding they use, the counter
@@ -171,6 +174,8 @@ struct Shared<'s> {
     /// The pose corrections learn from this pass: the backward pass carries gradients on to
     /// the rays' origins and directions and folds them into the frames' corrections.
     pose_gradients: bool,
+    /// The host's clock, for the chunks' stage times (feature `profile`).
+    timer: Timer,
 }
 
 impl<'a> Trainer<'a> {
@@ -203,6 +208,26 @@ impl<'a> Trainer<'a> {
     /// All MLP weights and biases, laid out as `Config::mlp`.
     pub fn mlp_parameters(&self) -> &[f32] {
         self.mlp
+    }
+
+    /// Lend the trainer a clock (or take it back with `None`): from now on each training
+    /// step and render adds its stage times to [`Trainer::profile`]. Timing never changes
+    /// the results.
+    #[cfg(feature = "profile")]
+    pub fn set_clock(&mut self, clock: Option<crate::profile::Clock>) {
+        self.profile.timer.clock = clock;
+    }
+
+    /// Stage times gathered since the clock was set or the profile last reset.
+    #[cfg(feature = "profile")]
+    pub fn profile(&self) -> crate::profile::Profile {
+        self.profile.times
+    }
+
+    /// Forget the stage times gathered so far (e.g. after warm-up steps).
+    #[cfg(feature = "profile")]
+    pub fn reset_profile(&mut self) {
+        self.profile.times = crate::profile::Profile::default();
     }
 
     /// `Err(RenderOnly)` for a render-only trainer: the guard of every training operation.
@@ -244,6 +269,7 @@ impl<'a> Trainer<'a> {
             fit_embedding: matches!(pass, Pass::FitEmbedding { .. }),
             pose_gradients: matches!(pass, Pass::Train)
                 && self.config.pose_learns_at(self.state.step),
+            timer: self.profile.timer,
         }
     }
 

@@ -17,6 +17,7 @@ impl<'a> Trainer<'a> {
         if !self.training {
             return;
         }
+        let mut laps = self.profile.laps();
         let c = self.config;
         let cells = c.occupancy_cells();
         let density = core::mem::take(&mut self.occupancy_density);
@@ -36,6 +37,8 @@ impl<'a> Trainer<'a> {
             });
         });
         self.occupancy_density = density;
+        let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
+        self.profile.parallel(&mut laps, Bucket::Train, times, None);
         // As in nerfacc, the threshold never exceeds the mean cell opacity, so a field whose
         // densities are all still low (early training) is not culled to nothing.
         let sum = self
@@ -64,5 +67,7 @@ impl<'a> Trainer<'a> {
             self.occupancy_bits.fill(u64::MAX);
         }
         self.state.refreshes += 1;
+        self.profile
+            .serial(&mut laps, Bucket::Train, Stage::Occupancy);
     }
 }

@@ -20,16 +20,22 @@ impl<'a> Trainer<'a> {
     /// Sample this step's batch and run every chunk's forward and backward pass, leaving the
     /// gradients in the chunks' buffers.
     pub(super) fn forward_backward<E: Executor>(&mut self, executor: &E) -> Result<(), Error> {
+        let mut laps = self.profile.laps();
         self.sample_rays()?;
+        self.profile
+            .serial(&mut laps, Bucket::Train, Stage::RaySampling);
         let rays = self.config.rays_per_batch as usize;
         self.with_chunks(Pass::Train, rays, |shared, chunks| {
             executor.for_each(chunks, |chunk| chunk.train(shared))
         });
+        let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
+        self.profile.parallel(&mut laps, Bucket::Train, times, None);
         Ok(())
     }
 
     /// Sum the chunks' gradients in chunk order, check them, and apply Adam.
     fn reduce_and_apply(&mut self) -> StepReport {
+        let mut laps = self.profile.laps();
         let (first, rest) = match self.chunks.split_first_mut() {
             Some(split) => split,
             None => return StepReport::default(),
@@ -93,6 +99,8 @@ impl<'a> Trainer<'a> {
             finite &= first.plane_grads[range].iter().all(|g| g.is_finite());
         }
 
+        self.profile
+            .serial(&mut laps, Bucket::Train, Stage::Reduction);
         let c = &self.config;
         if finite {
             self.state.updates += 1;
@@ -155,6 +163,7 @@ impl<'a> Trainer<'a> {
         for texel in set_bits(self.touched_union) {
             first.plane_grads[texel * f..(texel + 1) * f].fill(0.0);
         }
+        self.profile.serial(&mut laps, Bucket::Train, Stage::Adam);
         report
     }
 }
