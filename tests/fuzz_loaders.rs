@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 /// Inputs per loader in CI.
-const FUZZ_SMOKE_INPUTS: u64 = 2000;
+const FUZZ_SMOKE_INPUTS: u64 = 20_000;
 
 fn inputs_per_loader() -> u64 {
     std::env::var("ORBIT_NERF_FUZZ_INPUTS")
