@@ -9,8 +9,12 @@
 mod common;
 
 use common::{Scratch, orbit_nerf, output_text as text, root};
-use orbit_nerf_core::Config;
-use orbit_nerf_host::formats::speedplus::{self, Label};
+use orbit_nerf_core::glam::Vec3;
+use orbit_nerf_core::{Config, PoseCorrection};
+use orbit_nerf_host::checkpoint;
+use orbit_nerf_host::formats::speedplus::{self, Label, Truth};
+use orbit_nerf_host::sim::scene::{Exposure, LabelNoise, SceneSpec};
+use orbit_nerf_host::sim::{self, Scene};
 use orbit_nerf_host::stream::{Arrival, FrameSource, WatchOptions, WatchedFolder};
 use orbit_nerf_host::train;
 use std::path::{Path, PathBuf};
@@ -717,12 +721,7 @@ fn garbage_training_runs_fail_with_the_cause_and_save_nothing() {
         c.aabb_max = [101.0; 3];
     });
     let black = scratch.path("black");
-    copy_dataset(&data, &black);
-    for entry in std::fs::read_dir(black.join("images")).unwrap() {
-        let path = entry.unwrap().path();
-        let (w, h) = image::image_dimensions(&path).unwrap();
-        image::RgbImage::new(w, h).save(&path).unwrap();
-    }
+    copy_with_uniform_images(&data, &black, 0);
     type Case<'a> = (&'a str, &'a Path, &'a Path, &'a [&'a str], &'a [&'a str]);
     let cases: [Case; 4] = [
         (
@@ -805,6 +804,19 @@ fn copy_dataset(from: &Path, to: &Path) {
             std::fs::create_dir_all(to).unwrap();
             std::fs::copy(&path, &target).unwrap();
         }
+    }
+}
+
+/// Copy the dataset folder `from` to `to` with every image replaced by one of its size whose
+/// every pixel is `value` (0: black, 255: saturated).
+fn copy_with_uniform_images(from: &Path, to: &Path, value: u8) {
+    copy_dataset(from, to);
+    for entry in std::fs::read_dir(to.join("images")).unwrap() {
+        let path = entry.unwrap().path();
+        let (w, h) = image::image_dimensions(&path).unwrap();
+        image::GrayImage::from_pixel(w, h, image::Luma([value]))
+            .save(&path)
+            .unwrap();
     }
 }
 
@@ -912,4 +924,311 @@ fn train_and_eval_write_metrics_json_with_the_printed_figures() {
         );
         assert!(printed.contains(&mean), "`{mean}` not in: {printed}");
     }
+}
+
+/// Rays exactly in a face plane of the scene box, along its edges and through its corners,
+/// rendered through [`Trainer::render_rays`] and trained on (frames whose pixel rows and
+/// columns lie in the faces), and the density read on faces, edges and corners: every value
+/// is finite and nothing panics (a position on the box's upper faces normalises to exactly 1,
+/// the last texel and occupancy cell).
+#[test]
+fn grazing_rays_along_the_box_faces_edges_and_corners_stay_finite() {
+    use orbit_nerf_core::glam::Mat3;
+    use orbit_nerf_core::{Camera, MemoryPlan, Pose, Sequential, Trainer};
+    let mut config =
+        train::read_config(&root().join("budgets/tiny.toml"), &Config::DEFAULT).unwrap();
+    config.max_frames = 2;
+    config.max_pixels_per_frame = 64;
+    config.rays_per_batch = 64;
+    config.occupancy_every = 4;
+    let (lo, hi) = (config.aabb_min[0], config.aabb_max[0]);
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+
+    // Cameras looking along +x from outside the box: pixel row 0 has no vertical component
+    // and the last column (or the first) no horizontal one, so with the camera on an edge line
+    // row 0 lies in a face plane, that column in another, and their pixel along the edge.
+    let camera = |cx: f32, cy: f32| Camera {
+        width: 8,
+        height: 8,
+        fx: 8.0,
+        fy: 8.0,
+        cx,
+        cy,
+    };
+    let along_x = Mat3::from_cols(Vec3::Z, -Vec3::Y, Vec3::X);
+    let frames = [
+        (camera(7.5, 0.5), Vec3::new(lo - 3.0, hi, hi)),
+        (camera(0.5, 7.5), Vec3::new(lo - 3.0, lo, lo)),
+    ];
+    for (slot, (camera, center)) in frames.into_iter().enumerate() {
+        let pose = Pose {
+            rotation: along_x,
+            center,
+        };
+        let pixels: Vec<u8> = (0..64 * 3).map(|i| (i * 37 % 251) as u8).collect();
+        trainer
+            .set_frame(slot, camera, pose, &pixels, None)
+            .unwrap();
+    }
+    let mut samples = 0;
+    for step in 0..12 {
+        let report = trainer.step(&Sequential).unwrap();
+        assert!(report.mse.is_finite(), "step {step}: loss {}", report.mse);
+        assert!(!report.skipped, "step {step} skipped");
+        samples += report.samples;
+    }
+    assert!(samples > 0, "the grazing frames' rays sampled nothing");
+    assert_eq!(trainer.first_non_finite_section(), None);
+
+    let (l, h) = (lo, hi);
+    let rays: [([f32; 3], [f32; 3]); 10] = [
+        ([l - 5.0, h, 0.3], [1.0, 0.0, 0.0]),     // in the face y = max
+        ([l - 5.0, l - 5.0, l], [1.0, 1.0, 0.0]), // in the face z = min, diagonally
+        ([l - 5.0, h, h], [1.0, 0.0, 0.0]),       // along an upper edge
+        ([l - 5.0, l, l], [1.0, 0.0, 0.0]),       // along a lower edge
+        ([l - 5.0, l - 5.0, l - 5.0], [1.0, 1.0, 1.0]), // through two corners
+        ([0.5 * (l + h), h + 1.0, h - 1.0], [1.0, -1.0, 1.0]), // touching a corner only
+        ([h, h, h], [-1.0, -1.0, -1.0]),          // from a corner inwards
+        ([h, 0.0, 0.0], [1.0, 0.0, 0.0]),         // from a face outwards
+        ([l - 5.0, h, 0.0], [1.0, 1e-13, 0.0]),   // almost in the face
+        ([0.0, h, h], [0.0, 0.0, -1.0]),          // inside, along an edge
+    ];
+    let origins: Vec<[f32; 3]> = rays.iter().map(|r| r.0).collect();
+    let directions: Vec<[f32; 3]> = rays.iter().map(|r| r.1).collect();
+    let mut rgb = vec![0.0f32; rays.len() * 3];
+    let samples = trainer
+        .render_rays(&Sequential, &origins, &directions, &[], &mut rgb)
+        .unwrap();
+    assert!(samples.is_finite(), "mean samples per ray {samples}");
+    assert!(rgb.iter().all(|v| v.is_finite()), "{rgb:?}");
+
+    let corners_and_faces: Vec<[f32; 3]> = [l, 0.0, h]
+        .into_iter()
+        .flat_map(|x| [l, 0.0, h].map(|y| (x, y)))
+        .flat_map(|(x, y)| [l, 0.0, h].map(|z| [x, y, z]))
+        .collect();
+    let mut sigma = vec![0.0f32; corners_and_faces.len()];
+    trainer
+        .density_at(&Sequential, &corners_and_faces, &mut sigma)
+        .unwrap();
+    assert!(sigma.iter().all(|v| v.is_finite()), "{sigma:?}");
+}
+
+/// A lightbox set of 12 frames at 32 px in `out`, its scene changed by `edit` first (needs
+/// the reference data).
+fn simulated_lightbox_with(out: &Path, edit: impl FnOnce(&mut SceneSpec)) {
+    let mut scene = Scene::load("lightbox").unwrap();
+    scene.spec.frames = 12;
+    scene.spec.size = 32;
+    edit(&mut scene.spec);
+    sim::simulate(&scene, out, &|| {}).unwrap();
+}
+
+/// The mean held-out PSNR a successful run printed (finite: a NaN or an infinity fails).
+fn printed_mean_psnr(case: &str, out: &Output) -> f64 {
+    let printed = text(out);
+    assert!(out.status.success(), "{case}: {printed}");
+    let psnr: f64 = printed
+        .lines()
+        .find_map(|line| line.strip_prefix("mean PSNR over "))
+        .and_then(|rest| rest.split(": ").nth(1))
+        .and_then(|value| value.strip_suffix(" dB"))
+        .and_then(|value| value.parse().ok())
+        .unwrap_or_else(|| panic!("{case}: no mean PSNR in: {printed}"));
+    assert!(psnr.is_finite(), "{case}: mean PSNR {psnr}");
+    psnr
+}
+
+/// The pose corrections (translation, rotation vector part) of every frame slot of the
+/// checkpoint at `path`, restored into a trainer of its config.
+fn pose_corrections(path: &Path) -> Vec<PoseCorrection> {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    let saved = checkpoint::load(path).unwrap();
+    let config = train::checkpoint_config(path, &saved).unwrap();
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    train::restore_checkpoint(path, &saved, &mut trainer).unwrap();
+    let embedding = config.embedding_dim as usize;
+    (0..config.max_frames as usize)
+        .filter_map(|slot| trainer.frame_parameters(slot))
+        .map(|params| PoseCorrection::from_params(&params[embedding..]))
+        .collect()
+}
+
+/// Pose labels 5 degrees (and 5 cm) off, trained with pose correction: the run scores a
+/// finite PSNR, and the learnt corrections move off zero but stay finite and bounded.
+#[test]
+fn five_degree_pose_label_noise_trains_with_bounded_corrections() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("pose-noise");
+    let data = scratch.path("data");
+    simulated_lightbox_with(&data, |spec| {
+        spec.effects.label_noise = Some(LabelNoise {
+            rotation_deg: 5.0,
+            translation_m: 0.05,
+        });
+    });
+    let model = small_config(&scratch, "model.toml", |c| c.pose_correction = true);
+    let out = scratch.path("out");
+    let result = train_small(&data, &model, &out, &[]);
+    let psnr = printed_mean_psnr("5 degree pose noise", &result);
+    assert!(psnr > 10.0, "5 degree pose noise: mean PSNR {psnr} dB");
+    let corrections = pose_corrections(&out.join("checkpoint.onrf"));
+    assert!(
+        corrections
+            .iter()
+            .any(|c| c.dt != Vec3::ZERO || c.v != Vec3::ZERO),
+        "no correction was learnt"
+    );
+    for c in &corrections {
+        assert!(c.dt.is_finite() && c.v.is_finite(), "{c:?}");
+        // Within 0.5 m and 30 degrees (|v| = sin(angle / 2)).
+        assert!(c.dt.length() < 0.5 && c.v.length() < 0.26, "{c:?}");
+    }
+}
+
+/// Frames exposed at 0.01x (nearly black, not all black) and 100x (the target saturated):
+/// training stays finite and the run scores a finite PSNR (an all-black set is refused, as
+/// `garbage_training_runs_fail_with_the_cause_and_save_nothing` checks).
+#[test]
+fn exposure_of_a_hundredth_and_a_hundred_times_trains_finite_and_scores() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("exposure");
+    let model = small_config(&scratch, "model.toml", |_| {});
+    for exposure in [0.01f32, 100.0] {
+        let data = scratch.path(&format!("data-{exposure}"));
+        simulated_lightbox_with(&data, |spec| {
+            spec.effects.exposure = Some(Exposure {
+                range: [exposure; 2],
+                black_level: 0.0,
+            });
+        });
+        let out = scratch.path(&format!("out-{exposure}"));
+        let result = train_small(&data, &model, &out, &[]);
+        printed_mean_psnr(&format!("exposure {exposure}x"), &result);
+    }
+}
+
+/// Every frame all white (saturated): unlike all-black frames there is something to learn
+/// (a white target, or with masks a white target on the background colour), so the run
+/// trains finite and scores. Without masks the model renders the white frames exactly and
+/// the PSNR is +infinity (as scikit-image gives for a perfect match), never NaN.
+#[test]
+fn all_saturated_frames_train_finite_and_score() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("white");
+    let (data, model) = small_training_run(&scratch);
+    let white = scratch.path("white");
+    copy_with_uniform_images(&data, &white, 255);
+    let result = train_small(&white, &model, &scratch.path("masked"), &[]);
+    printed_mean_psnr("all-white frames", &result);
+    let result = train_small(&white, &model, &scratch.path("unmasked"), &["--no-masks"]);
+    let printed = text(&result);
+    assert!(result.status.success(), "{printed}");
+    assert!(
+        printed.contains("mean PSNR over 2 held-out views: inf dB"),
+        "{printed}"
+    );
+}
+
+/// The same images with the labels' translations and the scene box scaled by 1e-3 (a 1 mm
+/// target) and 1e3 (1 km): the held-out PSNR should be within 1 dB of the unscaled run's.
+/// It is not yet: the density is per world unit and the step is a fraction of the box's
+/// diagonal, so the optical depth of a step scales with the scene (25.4 dB unscaled, 19.9 dB
+/// at 1 mm, 20.6 dB at 1 km); see the README, "Hard cases".
+#[test]
+#[ignore = "issue 13: density is per world unit, so training depends on the scene's scale"]
+fn a_target_of_a_millimetre_and_of_a_kilometre_scores_as_the_unscaled_one() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("scale");
+    let (data, model) = small_training_run(&scratch);
+    let truth = Truth::read(&data.join("truth.json")).unwrap();
+    let mut psnr = Vec::new();
+    for scale in [1.0f64, 1e-3, 1e3] {
+        let scaled = scratch.path(&format!("data-{scale}"));
+        copy_dataset(&data, &scaled);
+        let mut labels = speedplus::read_labels(&data.join("labels.json")).unwrap();
+        for label in &mut labels {
+            label.r_vo2to_vbs = label.r_vo2to_vbs.map(|r| r * scale);
+        }
+        speedplus::write_labels(&scaled.join("labels.json"), &labels).unwrap();
+        let mut scaled_truth = truth.clone();
+        scaled_truth.target_box_min = truth.target_box_min.map(|v| v * scale as f32);
+        scaled_truth.target_box_max = truth.target_box_max.map(|v| v * scale as f32);
+        for frame in &mut scaled_truth.frames {
+            frame.r_vo2to_vbs_true = frame.r_vo2to_vbs_true.map(|r| r * scale);
+        }
+        scaled_truth.write(&scaled.join("truth.json")).unwrap();
+        let scene_box = scaled_truth
+            .target_box_min
+            .iter()
+            .chain(&scaled_truth.target_box_max)
+            .map(|v| v.to_string())
+            .collect::<Vec<_>>()
+            .join(",");
+        let out = scratch.path(&format!("out-{scale}"));
+        let result = train_small(&scaled, &model, &out, &["--scene-box", &scene_box]);
+        psnr.push(printed_mean_psnr(&format!("scale {scale}"), &result));
+    }
+    // A trained model, well above a blank render, so "within 1 dB" is not met trivially.
+    assert!(psnr[0] > 20.0, "unscaled: {} dB", psnr[0]);
+    for (scale, scaled) in [1e-3, 1e3].iter().zip(&psnr[1..]) {
+        assert!(
+            (scaled - psnr[0]).abs() < 1.0,
+            "scale {scale}: {scaled:.2} dB, unscaled {:.2} dB",
+            psnr[0]
+        );
+    }
+}
+
+/// Steps of the tiny profile in CI; `ORBIT_NERF_TINY_STEPS` sets a longer run (README).
+const TINY_PROFILE_STEPS: u32 = 150;
+
+/// A long run of the tiny profile (`budgets/tiny.toml`, 1024 rays per step) stays finite:
+/// every step's loss finite, none skipped, the parameters finite (`train` checks them before
+/// saving) and a finite score.
+#[test]
+fn a_long_run_of_the_tiny_profile_stays_finite() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let steps = std::env::var("ORBIT_NERF_TINY_STEPS")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(TINY_PROFILE_STEPS)
+        .to_string();
+    let scratch = Scratch::new("tiny-long");
+    let data = scratch.path("data");
+    common::simulated_lightbox(&data, 12, 32);
+    let tiny = root().join("budgets/tiny.toml");
+    let result = orbit_nerf(&["train", "--data", path_str(&data), "--size", "32"])
+        .args([
+            "--fit-steps",
+            "0",
+            "--steps",
+            &steps,
+            "--config",
+            path_str(&tiny),
+        ])
+        .args(["--out", path_str(&scratch.path("out"))])
+        .output()
+        .unwrap();
+    printed_mean_psnr("tiny profile", &result);
+    let printed = text(&result);
+    assert!(printed.contains(", 0 steps skipped"), "{printed}");
+    let losses: Vec<f64> = printed
+        .split(['\r', '\n'])
+        .filter_map(|line| line.split("loss ").nth(1)?.split(',').next()?.parse().ok())
+        .collect();
+    assert!(!losses.is_empty(), "no progress line: {printed}");
+    assert!(losses.iter().all(|loss| loss.is_finite()), "{losses:?}");
 }

@@ -28,7 +28,7 @@ pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// The payload encoding this build writes and the only one it reads.
 pub const FORMAT_VERSION: u32 = 2;
 /// Magic + version + payload length + CRC-32.
-const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
+pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Checkpoint {
@@ -97,7 +97,8 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
     decode(path, &bytes)
 }
 
-fn decode(path: &Path, bytes: &[u8]) -> Result<Checkpoint> {
+/// [`load`] of a checkpoint file's bytes (`path` names it in errors).
+pub fn decode(path: &Path, bytes: &[u8]) -> Result<Checkpoint> {
     let refuse = |reason: String| HostError::invalid(PathBuf::from(path), reason);
     // A file shorter than the magic that starts like one is a cut-off checkpoint, not a
     // foreign file.

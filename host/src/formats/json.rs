@@ -44,10 +44,7 @@ impl JsonFile {
 
     /// [`JsonFile::read`] on the text of the file `path` names.
     pub(crate) fn parse(path: &Path, text: &str) -> Result<JsonFile> {
-        JsonFile::object(JsonFile {
-            path: path.to_path_buf(),
-            root: parse_json(path, text)?,
-        })
+        JsonFile::object(JsonFile::parse_any(path, text)?)
     }
 
     fn object(json: JsonFile) -> Result<JsonFile> {
@@ -66,6 +63,14 @@ impl JsonFile {
         Ok(JsonFile {
             path: path.to_path_buf(),
             root: read_json(path)?,
+        })
+    }
+
+    /// [`JsonFile::read_any`] on the text of the file `path` names.
+    pub(crate) fn parse_any(path: &Path, text: &str) -> Result<JsonFile> {
+        Ok(JsonFile {
+            path: path.to_path_buf(),
+            root: parse_json(path, text)?,
         })
     }
 

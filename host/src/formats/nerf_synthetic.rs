@@ -41,7 +41,22 @@ pub fn load_nerf_synthetic(
 
 /// Load a NeRF-synthetic `transforms_*.json`. The scene box is K-Planes' [-1.5, 1.5]^3.
 pub fn load_nerf_synthetic_transforms(json_path: &Path, options: &LoadOptions) -> Result<Dataset> {
-    let reader = SyntheticReader::open(json_path, options)?;
+    dataset_of(SyntheticReader::open(json_path, options)?, options)
+}
+
+/// [`load_nerf_synthetic_transforms`] on the text of the file `json_path` names (the images
+/// are still read from the folder it names).
+pub fn parse_nerf_synthetic_transforms(
+    json_path: &Path,
+    text: &str,
+    options: &LoadOptions,
+) -> Result<Dataset> {
+    let json = JsonFile::parse(json_path, text)?;
+    dataset_of(SyntheticReader::from_json(json, options)?, options)
+}
+
+fn dataset_of(reader: SyntheticReader, options: &LoadOptions) -> Result<Dataset> {
+    let json_path = reader.json_path.as_path();
     let decoded = decode_all(&reader.jobs, options)?;
     let frames = reader
         .jobs
@@ -76,7 +91,10 @@ pub struct SyntheticReader {
 
 impl SyntheticReader {
     pub fn open(json_path: &Path, options: &LoadOptions) -> Result<SyntheticReader> {
-        let json = JsonFile::read(json_path)?;
+        SyntheticReader::from_json(JsonFile::read(json_path)?, options)
+    }
+
+    fn from_json(json: JsonFile, options: &LoadOptions) -> Result<SyntheticReader> {
         let angle_x = json.field_of_view(
             json.get(&json.root, "camera_angle_x", "camera_angle_x")?,
             "camera_angle_x",
@@ -103,7 +121,7 @@ impl SyntheticReader {
             .first()
             .and_then(|job| image::image_dimensions(&job.image).ok());
         Ok(SyntheticReader {
-            json_path: json_path.to_path_buf(),
+            json_path: json.path,
             jobs,
             angle_x,
             angle_y,

@@ -41,7 +41,17 @@ pub fn load_nerfstudio(path: &Path, options: &LoadOptions) -> Result<Dataset> {
     } else {
         path.to_path_buf()
     };
-    let json = JsonFile::read(&json_path)?;
+    dataset_of(JsonFile::read(&json_path)?, options)
+}
+
+/// [`load_nerfstudio`] on the text of the `transforms.json` file `json_path` names (the
+/// images are still read from the folder it names).
+pub fn parse_nerfstudio(json_path: &Path, text: &str, options: &LoadOptions) -> Result<Dataset> {
+    dataset_of(JsonFile::parse(json_path, text)?, options)
+}
+
+fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
+    let json_path = json.path.clone();
     if let Some(model) = json.root.get("camera_model") {
         let model = json.string(model, "camera_model")?;
         if !PERSPECTIVE_CAMERA_MODELS.contains(&model) {

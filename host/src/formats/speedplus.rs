@@ -72,18 +72,32 @@ impl Label {
 /// Read a SPEED+ label file (`q_vbs2tango_true` or `q_vbs2tango`, `r_Vo2To_vbs_true` or
 /// `r_Vo2To_vbs`). Rejects zero, non-unit and non-finite quaternions and non-finite positions.
 pub fn read_labels(path: &Path) -> Result<Vec<Label>> {
-    let json = JsonFile::read_any(path)?;
-    label_entries(&json)?
+    labels_of(&JsonFile::read_any(path)?)
+}
+
+/// [`read_labels`] on the text of the file `path` names.
+pub fn parse_labels(path: &Path, text: &str) -> Result<Vec<Label>> {
+    labels_of(&JsonFile::parse_any(path, text)?)
+}
+
+fn labels_of(json: &JsonFile) -> Result<Vec<Label>> {
+    label_entries(json)?
         .iter()
         .enumerate()
-        .map(|(index, entry)| parse_label(&json, &format!("[{index}]."), entry))
+        .map(|(index, entry)| parse_label_entry(json, &format!("[{index}]."), entry))
         .collect()
 }
 
 /// Read a file holding one SPEED+ label (a JSON object with the keys of a label file's entry).
 pub fn read_label(path: &Path) -> Result<Label> {
     let json = JsonFile::read_any(path)?;
-    parse_label(&json, "", &json.root)
+    parse_label_entry(&json, "", &json.root)
+}
+
+/// [`read_label`] on the text of the file `path` names.
+pub fn parse_label(path: &Path, text: &str) -> Result<Label> {
+    let json = JsonFile::parse_any(path, text)?;
+    parse_label_entry(&json, "", &json.root)
 }
 
 /// Write labels as a SPEED+ label file.
@@ -99,7 +113,7 @@ fn label_entries(json: &JsonFile) -> Result<&Vec<Value>> {
 }
 
 /// Check one label entry; its fields are named `{prefix}{key}` in errors.
-fn parse_label(json: &JsonFile, prefix: &str, entry: &Value) -> Result<Label> {
+fn parse_label_entry(json: &JsonFile, prefix: &str, entry: &Value) -> Result<Label> {
     let path = &json.path;
     let field = |name: &str| format!("{prefix}{name}");
     let filename = entry
@@ -172,7 +186,12 @@ impl TruthFrame {
 impl Truth {
     pub fn read(path: &Path) -> Result<Truth> {
         let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-        let truth: Truth = serde_json::from_str(&text)
+        Truth::parse(path, &text)
+    }
+
+    /// [`Truth::read`] on the text of the file `path` names.
+    pub fn parse(path: &Path, text: &str) -> Result<Truth> {
+        let truth: Truth = serde_json::from_str(text)
             .map_err(|e| HostError::invalid(path, format!("malformed truth file: {e}")))?;
         for (index, frame) in truth.frames.iter().enumerate() {
             if frame.label().pose().is_none() {
@@ -369,7 +388,7 @@ impl SpeedPlusReader {
         let entry = self.entries().get(index).ok_or_else(|| {
             HostError::invalid(&self.label_file, format!("no label number {index}"))
         })?;
-        parse_label(&self.labels, &format!("[{index}]."), entry)
+        parse_label_entry(&self.labels, &format!("[{index}]."), entry)
     }
 
     /// Frame `index`: label checked, image (and mask) decoded and resampled.
@@ -427,7 +446,19 @@ impl FrameDecoder {
         image_path: &Path,
         mask_path: Option<&Path>,
     ) -> Result<Frame> {
-        let image = read_image(image_path, &self.camera)?.to_rgb8();
+        let bytes = std::fs::read(image_path).map_err(|e| HostError::io(image_path, e))?;
+        self.decode_bytes(name, pose, (image_path, &bytes), mask_path)
+    }
+
+    /// [`FrameDecoder::decode`] of an image file's bytes (`image_path` names it in errors).
+    pub fn decode_bytes(
+        &self,
+        name: String,
+        pose: Pose,
+        (image_path, bytes): (&Path, &[u8]),
+        mask_path: Option<&Path>,
+    ) -> Result<Frame> {
+        let image = image_from_bytes(image_path, bytes, &self.camera)?.to_rgb8();
         let mask = match mask_path {
             Some(path) => Some((path, read_image(path, &self.camera)?.to_luma8())),
             None => None,
@@ -533,7 +564,16 @@ fn find_images_dir(label_dir: &Path, options: &LoadOptions) -> Result<PathBuf> {
 
 fn read_image(path: &Path, camera: &SpeedCamera) -> Result<image::DynamicImage> {
     let bytes = std::fs::read(path).map_err(|e| HostError::io(path, e))?;
-    let image = image::load_from_memory(&bytes)
+    image_from_bytes(path, &bytes, camera)
+}
+
+/// Decode the bytes of the image file `path` names and check its size against `camera`'s.
+fn image_from_bytes(
+    path: &Path,
+    bytes: &[u8],
+    camera: &SpeedCamera,
+) -> Result<image::DynamicImage> {
+    let image = image::load_from_memory(bytes)
         .map_err(|e| HostError::invalid(path, format!("cannot decode image: {e}")))?;
     if (image.width(), image.height()) != (camera.width, camera.height) {
         return Err(HostError::invalid(

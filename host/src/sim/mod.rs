@@ -17,7 +17,7 @@ mod target;
 mod trajectory;
 
 pub use scene::{Effects, Scene, SceneSpec, preset_names};
-pub use target::{Target, read_landmarks};
+pub use target::{Target, parse_landmarks, read_landmarks};
 
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};

@@ -347,7 +347,7 @@ pub fn read_landmarks(path: &Path) -> Result<Vec<Vec3>> {
 }
 
 /// [`read_landmarks`] on the text of the file `path` names.
-fn parse_landmarks(path: &Path, text: &str) -> Result<Vec<Vec3>> {
+pub fn parse_landmarks(path: &Path, text: &str) -> Result<Vec<Vec3>> {
     text.lines()
         .enumerate()
         .skip(1)
