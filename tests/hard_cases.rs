@@ -1232,3 +1232,38 @@ fn a_long_run_of_the_tiny_profile_stays_finite() {
     assert!(!losses.is_empty(), "no progress line: {printed}");
     assert!(losses.iter().all(|loss| loss.is_finite()), "{losses:?}");
 }
+
+/// Output into a pipe whose reader has gone (`orbit-nerf ... | head -1`) ends the process
+/// quietly by SIGPIPE; it was a panic in `println!` ("failed printing to stdout").
+#[cfg(unix)]
+#[test]
+fn output_into_a_closed_pipe_ends_quietly_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    let scratch = Scratch::new("closed-pipe");
+    let out = scratch.path("set");
+    // The reader is closed before the process starts, so its first line meets a broken pipe.
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let output = orbit_nerf(&[
+        "simulate",
+        "--scene",
+        "synthetic",
+        "--frames",
+        "2",
+        "--size",
+        "32",
+        "--out",
+        out.to_str().unwrap(),
+    ])
+    .stdout(writer)
+    .output()
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        output.status.signal(),
+        Some(13),
+        "{:?}: {stderr}",
+        output.status
+    );
+}
