@@ -5,7 +5,9 @@
 mod commands;
 
 use clap::{Parser, Subcommand};
-use commands::{ablate, bench, demo, eval, export, render, simulate, stream, sweep, train};
+use commands::{
+    ablate, bench, demo, eval, export, render, simulate, stream, sweep, tradeoff, train,
+};
 
 #[derive(Parser)]
 #[command(name = "orbit-nerf", version, about)]
@@ -39,6 +41,9 @@ enum Command {
     Stream(stream::StreamArgs),
     /// Run a sweep description: locally as parallel processes, or as a Slurm job array.
     Sweep(sweep::SweepArgs),
+    /// What accuracy costs in time: every knob's variants trained and scored while they
+    /// train (anytime curves), Pareto plots of quality against time and memory.
+    Tradeoff(tradeoff::TradeoffArgs),
 }
 
 fn main() {
@@ -55,6 +60,7 @@ fn main() {
         Command::Ablate(args) => ablate::run(&args),
         Command::Stream(args) => stream::run(&args),
         Command::Sweep(args) => sweep::run(&args),
+        Command::Tradeoff(args) => tradeoff::run(&args),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

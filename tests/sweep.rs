@@ -128,3 +128,187 @@ fn a_local_sweep_reports_a_failed_task_and_a_rerun_runs_only_the_unfinished_ones
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The held-out means of a `metrics.json` (`train`'s or `eval`'s) as the sweep records them.
+fn metrics_json_mean(dir: &Path) -> serde_json::Value {
+    let json: serde_json::Value =
+        serde_json::from_slice(&bytes(&dir.join("metrics.json"))).unwrap();
+    json["models"][0]["mean"].clone()
+}
+
+/// The figures of a task record's metrics that `metrics.json` also holds.
+fn same_figures(record: &serde_json::Value, mean: &serde_json::Value, what: &str) {
+    for key in [
+        "psnr_full",
+        "psnr_right",
+        "psnr_foreground",
+        "psnr_foreground_right",
+        "ssim_full",
+        "ssim_right",
+    ] {
+        assert_eq!(record[key], mean[key], "{what}: {key}");
+    }
+}
+
+/// `tradeoff` (issue 15): a small trade-off writes its description, the CSV, the table and
+/// the plots; each variant's figures, at its end and at an anytime step, and its checkpoint
+/// equal those of `train` (stopped at that step, then `eval`) run on its own.
+#[test]
+fn a_small_tradeoff_writes_its_report_and_equals_its_variants_trained_one_by_one() {
+    let dir = temp_dir("tradeoff");
+    let out = dir.join("out");
+    let flags = [
+        "tradeoff",
+        "--scene",
+        "synthetic",
+        "--frames",
+        "16",
+        "--size",
+        "32",
+        "--preset",
+        "tiny",
+        "--steps",
+        "30",
+        "--vary",
+        "features=16",
+        "--vary",
+        "size=24",
+        "--at",
+        "10,20",
+        "--targets",
+        "5,99",
+        "--budgets",
+        "0.001,1000",
+        "--fit-steps",
+        "5",
+        "--out",
+    ];
+    let (ok, text) = common::run_orbit_nerf(&[&flags[..], &[out.to_str().unwrap()]].concat());
+    assert!(ok, "{text}");
+    for file in [
+        "tradeoff.toml",
+        "tradeoff.csv",
+        "sweep.md",
+        "sweep.csv",
+        "pareto_time.png",
+        "pareto_memory.png",
+        "anytime_features.png",
+        "anytime_features_steps.png",
+        "anytime_size.png",
+        "anytime_size_steps.png",
+    ] {
+        assert!(out.join(file).is_file(), "{file} missing: {text}");
+        if file.ends_with(".png") {
+            image::open(out.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        }
+    }
+    let report = std::fs::read_to_string(out.join("sweep.md")).unwrap();
+    assert!(
+        report.contains("## What accuracy costs in time"),
+        "{report}"
+    );
+    // Every variant reaches 5 dB; none reaches 99 dB; nothing is scored within 1 ms.
+    for variant in ["reference", "features=16", "size=24"] {
+        let row = (report.lines())
+            .find(|l| l.starts_with(&format!("| {variant} ")) && l.contains("not reached"))
+            .unwrap_or_else(|| panic!("no trade-off row of {variant}: {report}"));
+        assert_eq!(row.matches("not reached").count(), 1, "{row}");
+    }
+    assert!(report.contains("- 0.001 s: no variant"), "{report}");
+    assert!(report.contains("- 1000 s: `"), "{report}");
+    // Three variants, each scored at steps 10, 20 and its end (30).
+    let csv = std::fs::read_to_string(out.join("tradeoff.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3 * 3, "{csv}");
+
+    // Each variant on its own: `train` to the end and to step 20 (`--stop-after`, then
+    // `eval`), on the frames the sweep simulated for it.
+    let config = dir.join("features.toml");
+    std::fs::write(&config, "features = 16\n").unwrap();
+    for (index, size, extra) in [
+        (0, "32", vec![]),
+        (1, "32", vec!["--config", config.to_str().unwrap()]),
+        (2, "24", vec![]),
+    ] {
+        let task = out.join("tasks").join(index.to_string());
+        let record: serde_json::Value =
+            serde_json::from_slice(&bytes(&task.join("result.json"))).unwrap();
+        let data = task.join("data");
+        let data = data.to_str().unwrap();
+        let common_flags = [
+            "--data",
+            data,
+            "--size",
+            size,
+            "--preset",
+            "tiny",
+            "--steps",
+            "30",
+            "--fit-steps",
+            "5",
+        ];
+        let end = dir.join(format!("train-{index}"));
+        let args = [
+            &["train"][..],
+            &common_flags,
+            &extra,
+            &["--out", end.to_str().unwrap()],
+        ];
+        let (ok, text) = common::run_orbit_nerf(&args.concat());
+        assert!(ok, "{text}");
+        let checkpoint = bytes(&end.join("checkpoint.onrf"));
+        let fnv = checkpoint.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+            (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+        assert_eq!(
+            record["checkpoint_fnv1a"],
+            format!("{fnv:016x}"),
+            "task {index}"
+        );
+        same_figures(&record["metrics"], &metrics_json_mean(&end), "end");
+        let curve = record["curve"].as_array().unwrap();
+        let steps: Vec<u64> = curve.iter().map(|p| p["step"].as_u64().unwrap()).collect();
+        assert_eq!(steps, [10, 20, 30], "task {index}");
+        same_figures(&curve[2]["metrics"], &metrics_json_mean(&end), "end point");
+
+        let stopped = dir.join(format!("stopped-{index}"));
+        let args = [
+            &["train"][..],
+            &common_flags,
+            &extra,
+            &["--stop-after", "20", "--out", stopped.to_str().unwrap()],
+        ];
+        let (ok, text) = common::run_orbit_nerf(&args.concat());
+        assert!(ok, "{text}");
+        let scored = dir.join(format!("eval-{index}"));
+        let checkpoint = stopped.join("checkpoint.onrf");
+        let (ok, text) = common::run_orbit_nerf(&[
+            "eval",
+            "--data",
+            data,
+            "--size",
+            size,
+            "--fit-steps",
+            "5",
+            "--checkpoint",
+            checkpoint.to_str().unwrap(),
+            "--metrics",
+            scored.to_str().unwrap(),
+        ]);
+        assert!(ok, "{text}");
+        same_figures(&curve[1]["metrics"], &metrics_json_mean(&scored), "step 20");
+    }
+
+    // The same flags continue the folder; other flags are refused without touching it.
+    let (ok, text) = common::run_orbit_nerf(&[&flags[..], &[out.to_str().unwrap()]].concat());
+    assert!(
+        ok && text.contains("3 finished earlier (skipped), 0 to run"),
+        "{text}"
+    );
+    let description = bytes(&out.join("tradeoff.toml"));
+    let mut other = flags.to_vec();
+    other[10] = "31";
+    let (ok, text) = common::run_orbit_nerf(&[&other[..], &[out.to_str().unwrap()]].concat());
+    assert!(!ok && text.contains("holds another trade-off"), "{text}");
+    assert_eq!(bytes(&out.join("tradeoff.toml")), description);
+    let _ = std::fs::remove_dir_all(&dir);
+}

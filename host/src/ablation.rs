@@ -45,6 +45,12 @@ pub struct VariantResult {
     pub train_seconds: f64,
     /// Mean over the held-out views.
     pub metrics: ViewMetrics,
+    /// The held-out figures at each of the experiment's `score_at` steps, then at the end.
+    pub curve: Vec<CurvePoint>,
+    /// Samples the training rays met in the scene box, over the whole run.
+    pub samples: u64,
+    /// Bytes of the model's arena (the memory plan's total).
+    pub arena_bytes: usize,
     /// Renders of the held-out views (RGB f32), in `test` order.
     pub renders: Vec<Vec<f32>>,
     /// Pose error of the training labels, and of the labels with the learned corrections,
@@ -81,6 +87,19 @@ pub struct Experiment<'a> {
     pub threads: usize,
     /// Steps fitting each held-out view's embedding on its left half.
     pub fit_steps: u32,
+    /// Steps after which the held-out views are also scored (the anytime curve), with the
+    /// training clock paused; ascending, each below the config's steps (the last step is
+    /// always scored).
+    pub score_at: &'a [u32],
+}
+
+/// The held-out views' mean figures after `step` training steps, reached in `seconds` of
+/// training (scoring time left out).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CurvePoint {
+    pub step: u32,
+    pub seconds: f64,
+    pub metrics: ViewMetrics,
 }
 
 /// A model's surface against the true shape: its size and the Chamfer distance, or why
@@ -156,6 +175,7 @@ pub fn run_variant(
         test_idx,
         threads,
         fit_steps,
+        score_at: &[],
     };
     let mut result = experiment.run(&config, on_step, None)?;
     result.variant = variant;
@@ -181,17 +201,44 @@ impl Experiment<'_> {
         let mut trainer = Trainer::new(config, &mut arena)
             .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
         train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
-        let start = Instant::now();
+        // The held-out views' scores and their mean.
+        let score = |trainer: &mut Trainer<'_>| -> Result<(Vec<train::ViewScore>, ViewMetrics)> {
+            let scores = train::evaluate(
+                trainer,
+                &executor,
+                dataset,
+                self.test_idx,
+                self.fit_steps,
+                None,
+            )?;
+            let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+            Ok((scores, report::mean_metrics(&per_view)))
+        };
+        let mut train_seconds = 0.0;
+        let mut start = Instant::now();
         let (mut rays, mut samples) = (0u64, 0u64);
-        for _ in 0..config.steps {
+        let mut curve = Vec::with_capacity(self.score_at.len() + 1);
+        for step in 1..=config.steps {
             let report = trainer
                 .step(&executor)
                 .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
             rays += report.rays as u64;
             samples += report.samples as u64;
             on_step(&report);
+            if self.score_at.contains(&step) && step < config.steps {
+                train_seconds += start.elapsed().as_secs_f64();
+                // Scoring reads the field and fits held-out embeddings in scratch buffers:
+                // training goes on from the same state (the sweep test checks the bytes).
+                let (_, metrics) = score(&mut trainer)?;
+                curve.push(CurvePoint {
+                    step,
+                    seconds: train_seconds,
+                    metrics,
+                });
+                start = Instant::now();
+            }
         }
-        let train_seconds = start.elapsed().as_secs_f64();
+        train_seconds += start.elapsed().as_secs_f64();
         let tally = train::TrainingTally {
             steps: config.steps as u64,
             samples,
@@ -206,15 +253,12 @@ impl Experiment<'_> {
         if let Some(path) = checkpoint {
             train::save_checkpoint(path, &trainer)?;
         }
-        let scores = train::evaluate(
-            &mut trainer,
-            &executor,
-            dataset,
-            self.test_idx,
-            self.fit_steps,
-            None,
-        )?;
-        let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+        let (scores, metrics) = score(&mut trainer)?;
+        curve.push(CurvePoint {
+            step: config.steps,
+            seconds: train_seconds,
+            metrics,
+        });
         let mut mean = vec![0.0f32; config.embedding_dim as usize];
         trainer.mean_embedding(&mut mean);
         let surface = geometry::extract_surface(
@@ -260,7 +304,10 @@ impl Experiment<'_> {
                 pose_correction: config.pose_correction,
             },
             train_seconds,
-            metrics: report::mean_metrics(&per_view),
+            metrics,
+            curve,
+            samples,
+            arena_bytes: plan.total,
             views: train::view_figures(&scores),
             renders: scores.into_iter().map(|s| s.render).collect(),
             pose_before,

@@ -9,8 +9,8 @@ use orbit_nerf_host::ablation::{
     self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
 };
 use orbit_nerf_host::dataset::{Dataset, split_every};
-use orbit_nerf_host::formats::Format;
 use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
+use orbit_nerf_host::formats::{self, Format};
 use orbit_nerf_host::geometry::{self, Triangle};
 use orbit_nerf_host::presets;
 use orbit_nerf_host::report::{self, ModelOutcome, ModelRow, NoiseLevelResult};
@@ -25,7 +25,7 @@ pub struct AblateArgs {
     /// Scene to simulate: a preset (synthetic, lightbox, sunlamp) or a scene file.
     #[arg(long, default_value = "lightbox")]
     pub scene: String,
-    /// Use this SPEED+-format dataset instead of simulating one.
+    /// Use this dataset (SPEED+/SHIRT/simulator, NeRF-synthetic or nerfstudio) instead of simulating one.
     #[arg(long)]
     pub data: Option<PathBuf>,
     /// Frames to simulate.
@@ -139,18 +139,26 @@ pub fn geometry_section(results: &[&VariantResult], truth: &[Triangle]) -> Strin
     )
 }
 
-/// Load a SPEED+ folder with its exact poses (when it has `truth.json`), its masks applied
-/// when `masks`.
+/// Load a dataset folder of any format, with its exact poses when it has them (a SPEED+
+/// folder's `truth.json`), its masks applied when `masks`.
 pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
-    let set = speedplus::load(
-        path,
-        &LoadOptions {
-            max_side: Some(size as u32),
-            domain: None,
-        },
-    )?;
-    let truth = set.true_poses()?;
-    let mut dataset = set.dataset;
+    let (mut dataset, truth) = match Format::of(path) {
+        Format::SpeedPlus => {
+            let set = speedplus::load(
+                path,
+                &LoadOptions {
+                    max_side: Some(size as u32),
+                    domain: None,
+                },
+            )?;
+            let truth = set.true_poses()?;
+            (set.dataset, truth)
+        }
+        _ => (
+            formats::open(path, Some(size as u32), super::NERF_BACKGROUND)?,
+            None,
+        ),
+    };
     if masks {
         dataset.apply_masks();
     }
@@ -329,6 +337,7 @@ fn run_level(
         test_idx: &test_idx,
         threads: args.threads,
         fit_steps: args.fit_steps,
+        score_at: &[],
     };
     let run = |variant: &str| -> Fallible<ModelOutcome> {
         let task = (sweep.tasks.iter())

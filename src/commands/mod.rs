@@ -10,6 +10,7 @@ pub mod render;
 pub mod simulate;
 pub mod stream;
 pub mod sweep;
+pub mod tradeoff;
 pub mod train;
 
 use clap::Args;

@@ -9,7 +9,8 @@ use orbit_nerf_host::ablation::Experiment;
 use orbit_nerf_host::dataset::split_every;
 use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
 use orbit_nerf_host::sweep::results::{
-    self, CHECKPOINT, LOG, RENDER, TaskResult, array_spec, fnv1a, read_result, task_dir, unfinished,
+    self, CHECKPOINT, CurveRecord, LOG, RENDER, TaskResult, TaskTiming, array_spec, fnv1a,
+    read_result, task_dir, unfinished, write_timing,
 };
 use orbit_nerf_host::sweep::slurm::{self, Resources};
 use orbit_nerf_host::sweep::{Source, Sweep, Task};
@@ -183,7 +184,8 @@ fn run_task(description: &Path, index: usize, out: &Path, threads: usize) -> Fal
     }
     let dir = task_dir(out, index);
     println!("task {index}: {}", task.name);
-    let result = train_and_score(&sweep, task, &dir, threads)?;
+    let (result, timing) = train_and_score(&sweep, task, &dir, threads)?;
+    write_timing(out, &timing)?;
     results::write_result(out, &result)?;
     println!(
         "task {index}: result in {}",
@@ -193,18 +195,24 @@ fn run_task(description: &Path, index: usize, out: &Path, threads: usize) -> Fal
 }
 
 /// The dataset of `task` (simulated into `dir/data` for a scene), its model trained and
-/// scored; writes the checkpoint and the first held-out view's render into `dir`.
-fn train_and_score(sweep: &Sweep, task: &Task, dir: &Path, threads: usize) -> Fallible<TaskResult> {
+/// scored (also after the sweep's anytime steps); writes the checkpoint and the first
+/// held-out view's render into `dir`.
+fn train_and_score(
+    sweep: &Sweep,
+    task: &Task,
+    dir: &Path,
+    threads: usize,
+) -> Fallible<(TaskResult, TaskTiming)> {
     let (mut dataset, truth) = match &sweep.source {
         Source::Scene(scene) => simulated(
             scene,
             sweep.frames,
-            sweep.size,
+            task.size,
             task.noise,
             &dir.join("data"),
             sweep.masks,
         )?,
-        Source::Data(path) => load(path, sweep.size, sweep.masks)?,
+        Source::Data(path) => load(path, task.size, sweep.masks)?,
     };
     let (train_idx, test_idx) = split_every(dataset.frames.len(), sweep.holdout);
     if train_idx.is_empty() || test_idx.is_empty() {
@@ -229,6 +237,7 @@ fn train_and_score(sweep: &Sweep, task: &Task, dir: &Path, threads: usize) -> Fa
         test_idx: &test_idx,
         threads,
         fit_steps: sweep.fit_steps,
+        score_at: &sweep.score_at(task),
     };
     let (mut steps, mut skipped) = (0u32, 0u32);
     let every = (task.config.steps / 10).max(1);
@@ -267,7 +276,7 @@ fn train_and_score(sweep: &Sweep, task: &Task, dir: &Path, threads: usize) -> Fa
     let (rotation_deg, translation_m) = task
         .noise
         .map_or((0.0, 0.0), |n| (n.rotation_deg, n.translation_m));
-    Ok(TaskResult {
+    let record = TaskResult {
         index: task.index,
         name: task.name.clone(),
         variant: task.variant.clone(),
@@ -277,15 +286,32 @@ fn train_and_score(sweep: &Sweep, task: &Task, dir: &Path, threads: usize) -> Fa
         steps: task.config.steps,
         held_out_views: test_idx.len(),
         metrics: result.metrics.into(),
+        curve: (result.curve.iter())
+            .map(|p| CurveRecord {
+                step: p.step,
+                metrics: p.metrics.into(),
+            })
+            .collect(),
+        size: task.size,
+        arena_bytes: result.arena_bytes as u64,
+        samples: result.samples,
         pose_before: result.pose_before.map(Into::into),
         pose_after: result.pose_after.map(Into::into),
         checkpoint_fnv1a: format!("{:016x}", fnv1a(&bytes)),
-    })
+    };
+    let timing = TaskTiming {
+        index: task.index,
+        name: task.name.clone(),
+        seconds: result.curve.iter().map(|p| p.seconds).collect(),
+        threads,
+        cpu: orbit_nerf_host::machine::cpu_summary(),
+    };
+    Ok((record, timing))
 }
 
 /// Run the unfinished tasks as child processes (`run-task`), `jobs` at a time, each logging
 /// to its folder; report every failed task with its log and fail, else collect.
-fn run_local(
+pub(super) fn run_local(
     description: &Path,
     out: &Path,
     jobs: Option<usize>,

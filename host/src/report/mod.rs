@@ -24,7 +24,7 @@ mod views;
 #[cfg(feature = "profile")]
 pub use bars::stacked_bars;
 pub use figures::{FIGURES_SCHEMA, Figures, ModelFigures, TrainingFigures, ViewFigures};
-pub use plot::line_plot;
+pub use plot::{labelled_scatter, line_plot};
 pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};
 pub use poses::{
     PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,

@@ -46,9 +46,79 @@ pub fn line_plot(
     y_label: &str,
     series: &[(&str, Vec<(f64, f64)>)],
 ) -> Result<()> {
+    let styled: Vec<Series> = (series.iter().enumerate())
+        .map(|(i, (name, points))| Series {
+            name,
+            points: points.clone(),
+            line: true,
+            colour: PALETTE[i % PALETTE.len()],
+        })
+        .collect();
+    plot(path, title, x_label, y_label, &styled, &[])
+}
+
+/// Colour of the points off the front in [`labelled_scatter`].
+const OFF_FRONT: RGBColor = RGBColor(127, 127, 127);
+
+/// A PNG scatter plot of named points (`names[i]` at `points[i]`, each name printed beside its
+/// point), the points with indices in `front` joined by a line in their order (a Pareto
+/// front), the rest grey; axes, ticks, title and legend as in [`line_plot`].
+pub fn labelled_scatter(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    names: &[&str],
+    points: &[(f64, f64)],
+    front: &[usize],
+) -> Result<()> {
+    let series = [
+        Series {
+            name: "Pareto front",
+            points: front
+                .iter()
+                .filter_map(|&i| points.get(i).copied())
+                .collect(),
+            line: true,
+            colour: PALETTE[0],
+        },
+        Series {
+            name: "other",
+            points: (0..points.len())
+                .filter(|i| !front.contains(i))
+                .map(|i| points[i])
+                .collect(),
+            line: false,
+            colour: OFF_FRONT,
+        },
+    ];
+    let labels: Vec<((f64, f64), &str)> =
+        points.iter().copied().zip(names.iter().copied()).collect();
+    plot(path, title, x_label, y_label, &series, &labels)
+}
+
+/// One series of [`plot`]: its points joined by a line or not.
+struct Series<'a> {
+    name: &'a str,
+    points: Vec<(f64, f64)>,
+    line: bool,
+    colour: RGBColor,
+}
+
+/// Point labels are printed at 1x (5x7-px glyphs), beside their points.
+const POINT_LABEL_SCALE: usize = 1;
+
+fn plot(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series],
+    labels: &[((f64, f64), &str)],
+) -> Result<()> {
     let finite: Vec<Vec<(f64, f64)>> = series
         .iter()
-        .map(|(_, points)| {
+        .map(|Series { points, .. }| {
             points
                 .iter()
                 .copied()
@@ -66,7 +136,7 @@ pub fn line_plot(
 
     let text_height = GLYPH_HEIGHT * PLOT_TEXT_SCALE;
     let y_tick_label_width = widest_text(y_tick_labels.iter().map(String::as_str));
-    let legend_width = LEGEND_SWATCH + 8 + widest_text(series.iter().map(|(name, _)| *name));
+    let legend_width = LEGEND_SWATCH + 8 + widest_text(series.iter().map(|s| s.name));
     let margins = PlotMargins {
         top: 12 + text_height + 14,
         bottom: TICK_LENGTH + 6 + text_height + 12 + text_height + 10,
@@ -85,6 +155,7 @@ pub fn line_plot(
             x_ticks: &x_ticks,
             y_ticks: &y_ticks,
             series: &finite,
+            styles: series,
         };
         draw_plot_geometry(&root, &geometry)
             .and_then(|frame| root.present().map(|()| frame))
@@ -125,9 +196,23 @@ pub fn line_plot(
     );
     let y_label_bottom = (frame.top + frame.bottom + text_width(y_label, PLOT_TEXT_SCALE)) / 2;
     canvas.text_up(10, y_label_bottom, y_label, PLOT_TEXT_SCALE, INK);
+    for &((x, y), label) in labels {
+        if let Some((column, row)) = frame.pixel_of(x, y) {
+            // Right of the point, or left of it where the text would cross the frame.
+            let width = text_width(label, POINT_LABEL_SCALE);
+            let left = if column + 5 + width > frame.right {
+                column.saturating_sub(5 + width)
+            } else {
+                column + 5
+            };
+            canvas.text(left, row.saturating_sub(9), label, POINT_LABEL_SCALE, INK);
+        }
+    }
     let swatch_left = frame.right + 16;
-    for (index, (name, _)) in series.iter().enumerate() {
-        let RGBColor(r, g, b) = PALETTE[index % PALETTE.len()];
+    // Rows that would run off the image are left out of the legend.
+    let rows = (PLOT_HEIGHT.saturating_sub(frame.top + 4 + text_height)) / LEGEND_ROW + 1;
+    for (index, Series { name, colour, .. }) in series.iter().enumerate().take(rows) {
+        let RGBColor(r, g, b) = *colour;
         let top = frame.top + 4 + index * LEGEND_ROW;
         let swatch_top = top + text_height / 2 - 2;
         canvas.fill_rect(swatch_left, swatch_top, LEGEND_SWATCH, 4, [r, g, b]);
@@ -160,6 +245,7 @@ struct PlotGeometry<'a> {
     x_ticks: &'a [f64],
     y_ticks: &'a [f64],
     series: &'a [Vec<(f64, f64)>],
+    styles: &'a [Series<'a>],
 }
 
 /// Where the plot frame and the ticks landed, in pixels, for placing text around them.
@@ -172,6 +258,21 @@ struct PlotFrame {
     x_ticks: Vec<usize>,
     /// Row of each y tick.
     y_ticks: Vec<usize>,
+    x_range: Range<f64>,
+    y_range: Range<f64>,
+}
+
+impl PlotFrame {
+    /// The pixel of data point `(x, y)`, `None` when it is not finite or outside the frame.
+    fn pixel_of(&self, x: f64, y: f64) -> Option<(usize, usize)> {
+        let fx = (x - self.x_range.start) / (self.x_range.end - self.x_range.start);
+        let fy = (y - self.y_range.start) / (self.y_range.end - self.y_range.start);
+        ((0.0..=1.0).contains(&fx) && (0.0..=1.0).contains(&fy)).then(|| {
+            let column = self.left as f64 + fx * (self.right - self.left) as f64;
+            let row = self.bottom as f64 - fy * (self.bottom - self.top) as f64;
+            (column.round() as usize, row.round() as usize)
+        })
+    }
 }
 
 /// Grid, series, plot frame and tick marks, drawn with plotters. Plotters draws no text here:
@@ -201,13 +302,15 @@ fn draw_plot_geometry<DB: DrawingBackend>(
         .iter()
         .map(|&y| PathElement::new(vec![(x0, y), (x1, y)], GRID));
     chart.draw_series(vertical_grid.chain(horizontal_grid))?;
-    for (index, points) in geometry.series.iter().enumerate() {
-        let colour = PALETTE[index % PALETTE.len()];
-        chart.draw_series(LineSeries::new(
-            points.iter().copied(),
-            colour.stroke_width(2),
-        ))?;
-        if points.len() <= MARKER_LIMIT {
+    for (points, style) in geometry.series.iter().zip(geometry.styles) {
+        let colour = style.colour;
+        if style.line {
+            chart.draw_series(LineSeries::new(
+                points.iter().copied(),
+                colour.stroke_width(2),
+            ))?;
+        }
+        if points.len() <= MARKER_LIMIT || !style.line {
             let markers = points
                 .iter()
                 .map(|&point| Circle::new(point, 3, colour.filled()));
@@ -246,6 +349,8 @@ fn draw_plot_geometry<DB: DrawingBackend>(
         bottom: pixel(bottom),
         x_ticks,
         y_ticks,
+        x_range: geometry.x_range.clone(),
+        y_range: geometry.y_range.clone(),
     })
 }
 

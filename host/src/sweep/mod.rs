@@ -21,10 +21,18 @@
 //! [[variants]]                 # optional: default baseline, ours, ours + pose
 //! name = "ours"                #   (with noise levels: ours, ours + pose)
 //! set = { embedding_dim = 32, pose_correction = false }
+//! size = 64                    # optional: this variant's image size (default `size`)
+//!
+//! [anytime]                    # optional: what accuracy costs in time (`tradeoff`)
+//! steps = [250, 500, 1000]     # held-out views also scored after these steps
+//! quality = "psnr_foreground"  # the figure of the Pareto plots, targets and budgets
+//! targets = [25, 27, 28]       # the report gives each variant's time to reach these
+//! budgets_s = [30, 60, 300]    # and the best variant within each training time
 //! ```
 
 pub mod results;
 pub mod slurm;
+pub mod tradeoff;
 
 use crate::ablation::{APPEARANCE, APPEARANCE_POSE, BASELINE, Variant};
 use crate::error::{HostError, Result};
@@ -43,7 +51,7 @@ use std::path::{Path, PathBuf};
 pub struct SweepDescription {
     /// A scene preset or scene file to simulate.
     pub scene: Option<String>,
-    /// A SPEED+-format dataset folder (instead of `scene`).
+    /// A dataset folder of any format (instead of `scene`): SPEED+/SHIRT/simulator, NeRF-synthetic, nerfstudio.
     pub data: Option<PathBuf>,
     /// Frames to simulate (default 400).
     pub frames: Option<u32>,
@@ -70,8 +78,98 @@ pub struct SweepDescription {
     pub noise: Option<NoiseLevels>,
     #[serde(default)]
     pub variants: Vec<VariantSpec>,
+    pub anytime: Option<AnytimeSpec>,
 }
 
+/// Scoring during training, and the trade-off report's figures (see [`Anytime`]).
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AnytimeSpec {
+    #[serde(default)]
+    pub steps: Vec<u32>,
+    pub quality: Option<String>,
+    #[serde(default)]
+    pub targets: Vec<f64>,
+    #[serde(default)]
+    pub budgets_s: Vec<f64>,
+}
+
+/// The figure a trade-off report ranks variants by: a mean held-out metric.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Quality {
+    PsnrFull,
+    PsnrRight,
+    PsnrForeground,
+    PsnrForegroundRight,
+    SsimFull,
+    SsimRight,
+}
+
+impl Quality {
+    pub const ALL: [Quality; 6] = [
+        Quality::PsnrFull,
+        Quality::PsnrRight,
+        Quality::PsnrForeground,
+        Quality::PsnrForegroundRight,
+        Quality::SsimFull,
+        Quality::SsimRight,
+    ];
+
+    /// The name in descriptions and CSV headers (a field of the task records' metrics).
+    pub fn name(self) -> &'static str {
+        match self {
+            Quality::PsnrFull => "psnr_full",
+            Quality::PsnrRight => "psnr_right",
+            Quality::PsnrForeground => "psnr_foreground",
+            Quality::PsnrForegroundRight => "psnr_foreground_right",
+            Quality::SsimFull => "ssim_full",
+            Quality::SsimRight => "ssim_right",
+        }
+    }
+
+    /// Axis and table label, with its unit.
+    pub fn label(self) -> &'static str {
+        match self {
+            Quality::PsnrFull => "PSNR (dB)",
+            Quality::PsnrRight => "right-half PSNR (dB)",
+            Quality::PsnrForeground => "foreground PSNR (dB)",
+            Quality::PsnrForegroundRight => "right-half foreground PSNR (dB)",
+            Quality::SsimFull => "SSIM",
+            Quality::SsimRight => "right-half SSIM",
+        }
+    }
+
+    pub fn of(self, m: &crate::report::ViewMetrics) -> f64 {
+        match self {
+            Quality::PsnrFull => m.psnr_full,
+            Quality::PsnrRight => m.psnr_right,
+            Quality::PsnrForeground => m.psnr_foreground,
+            Quality::PsnrForegroundRight => m.psnr_foreground_right,
+            Quality::SsimFull => m.ssim_full,
+            Quality::SsimRight => m.ssim_right,
+        }
+    }
+
+    /// Largest value the metric takes (a target above it is a typo).
+    fn max(self) -> f64 {
+        match self {
+            Quality::SsimFull | Quality::SsimRight => 1.0,
+            _ => 200.0,
+        }
+    }
+}
+
+/// A checked `[anytime]` table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Anytime {
+    /// Ascending, distinct, above 0; a task scores those below its own steps, then its end.
+    pub steps: Vec<u32>,
+    pub quality: Quality,
+    /// Quality levels whose time to reach the report gives, ascending.
+    pub targets: Vec<f64>,
+    /// Training times (s) within which the report names the best variant, ascending.
+    pub budgets_s: Vec<f64>,
+}
 /// Label-noise levels: the rotation sweep's (degrees, exact positions) and the translation
 /// sweep's (mm per axis, exact attitudes).
 #[derive(Clone, Debug, Default, Deserialize)]
@@ -90,6 +188,8 @@ pub struct VariantSpec {
     pub name: String,
     #[serde(default)]
     pub set: toml::Table,
+    /// This variant's image size (default: the sweep's).
+    pub size: Option<u32>,
 }
 
 /// Where a sweep's frames come from.
@@ -111,6 +211,8 @@ pub struct Task {
     pub variant: String,
     pub noise: Option<LabelNoise>,
     pub seed: u64,
+    /// Image size in pixels (the variant's, else the sweep's).
+    pub size: u16,
     pub config: Config,
 }
 
@@ -133,6 +235,8 @@ pub struct Sweep {
     /// The two pose-noise sweeps' levels (empty without `[noise]`).
     pub rotation: Vec<LabelNoise>,
     pub translation: Vec<LabelNoise>,
+    /// Scoring during training and the trade-off report (`[anytime]`).
+    pub anytime: Option<Anytime>,
     pub tasks: Vec<Task>,
 }
 
@@ -166,6 +270,14 @@ impl Sweep {
 }
 
 impl Sweep {
+    /// The steps after which `task` also scores its held-out views (none without `[anytime]`).
+    pub fn score_at(&self, task: &Task) -> Vec<u32> {
+        (self.anytime.iter())
+            .flat_map(|a| a.steps.iter().copied())
+            .filter(|&s| s < task.config.steps)
+            .collect()
+    }
+
     /// The sweep's noise levels in task order, each once (`[None]` without `[noise]`).
     pub fn levels(&self) -> Vec<Option<LabelNoise>> {
         let mut levels = Vec::new();
@@ -289,23 +401,28 @@ impl SweepDescription {
         } else {
             self.variants.clone()
         };
-        let mut configs: Vec<(String, Config)> = Vec::new();
+        let anytime = self
+            .anytime
+            .as_ref()
+            .map(|a| check_anytime(origin, a))
+            .transpose()?;
+        let mut configs: Vec<(String, Config, u16)> = Vec::new();
         for (i, variant) in variants.iter().enumerate() {
             let name = variant.name.trim();
             if name.is_empty()
                 || !name
                     .chars()
-                    .all(|c| c.is_ascii_alphanumeric() || " _+.-".contains(c))
+                    .all(|c| c.is_ascii_alphanumeric() || " _+.-=[],".contains(c))
             {
                 return Err(field(
                     &format!("variants[{i}].name"),
                     format!(
-                        "`{}`: use letters, digits, spaces and _ + . -",
+                        "`{}`: use letters, digits, spaces and _ + . - = [ ] ,",
                         variant.name
                     ),
                 ));
             }
-            if configs.iter().any(|(n, _)| n == name) {
+            if configs.iter().any(|(n, _, _)| n == name) {
                 return Err(field(
                     &format!("variants[{i}].name"),
                     format!("`{name}` is used twice"),
@@ -313,7 +430,14 @@ impl SweepDescription {
             }
             let config =
                 with_overrides(origin, &format!("variants[{i}].set."), &base, &variant.set)?;
-            configs.push((name.to_string(), config));
+            let variant_size = variant.size.unwrap_or(size);
+            if !(8..=MAX_SIZE).contains(&variant_size) {
+                return Err(field(
+                    &format!("variants[{i}].size"),
+                    format!("{variant_size} is not between 8 and {MAX_SIZE} px"),
+                ));
+            }
+            configs.push((name.to_string(), config, variant_size as u16));
         }
         // The noise-free level is shared by both sweeps: trained once.
         let mut levels: Vec<Option<LabelNoise>> = Vec::new();
@@ -334,7 +458,7 @@ impl SweepDescription {
         }
         let mut tasks = Vec::with_capacity(count);
         for level in &levels {
-            for (variant, config) in &configs {
+            for (variant, config, size) in &configs {
                 for &seed in &seeds {
                     let mut config = *config;
                     config.seed = seed;
@@ -351,6 +475,7 @@ impl SweepDescription {
                         variant: variant.clone(),
                         noise: *level,
                         seed,
+                        size: *size,
                         config,
                     });
                 }
@@ -369,6 +494,7 @@ impl SweepDescription {
             base,
             rotation,
             translation,
+            anytime,
             tasks,
         })
     }
@@ -436,8 +562,76 @@ fn default_variants(noise: bool) -> Vec<VariantSpec> {
                     toml::Value::Boolean(v.pose_correction),
                 ),
             ]),
+            size: None,
         })
         .collect()
+}
+
+/// Largest accepted number of anytime points, targets and budgets.
+const MAX_ANYTIME_POINTS: usize = 1000;
+
+/// `[anytime]` checked: steps ascending and above 0, a known quality, finite targets within
+/// the quality's range and finite positive budgets, each list ascending.
+fn check_anytime(origin: &Path, spec: &AnytimeSpec) -> Result<Anytime> {
+    let field = |name: String, reason: String| HostError::field(origin, name, reason);
+    let quality = match spec.quality.as_deref() {
+        None => Quality::PsnrForeground,
+        Some(name) => Quality::ALL
+            .into_iter()
+            .find(|q| q.name() == name)
+            .ok_or_else(|| {
+                field(
+                    "anytime.quality".into(),
+                    format!(
+                        "`{name}` is none of {}",
+                        Quality::ALL.map(Quality::name).join(", ")
+                    ),
+                )
+            })?,
+    };
+    for (name, len) in [
+        ("steps", spec.steps.len()),
+        ("targets", spec.targets.len()),
+        ("budgets_s", spec.budgets_s.len()),
+    ] {
+        if len > MAX_ANYTIME_POINTS {
+            return Err(field(
+                format!("anytime.{name}"),
+                format!("{len} values: more than {MAX_ANYTIME_POINTS}"),
+            ));
+        }
+    }
+    for (i, &step) in spec.steps.iter().enumerate() {
+        if step == 0 || (i > 0 && step <= spec.steps[i - 1]) {
+            return Err(field(
+                format!("anytime.steps[{i}]"),
+                format!("{step}: steps are above 0 and ascending"),
+            ));
+        }
+    }
+    let ascending = |name: &str, values: &[f64], range: std::ops::RangeInclusive<f64>| {
+        for (i, &v) in values.iter().enumerate() {
+            if !(v.is_finite() && range.contains(&v)) || (i > 0 && v <= values[i - 1]) {
+                return Err(field(
+                    format!("anytime.{name}[{i}]"),
+                    format!(
+                        "{v}: values are ascending, from {} to {}",
+                        range.start(),
+                        range.end()
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    };
+    ascending("targets", &spec.targets, 0.0..=quality.max())?;
+    ascending("budgets_s", &spec.budgets_s, 1e-3..=1e9)?;
+    Ok(Anytime {
+        steps: spec.steps.clone(),
+        quality,
+        targets: spec.targets.clone(),
+        budgets_s: spec.budgets_s.clone(),
+    })
 }
 
 /// The rotation and translation levels as label noise, each checked.
@@ -547,6 +741,21 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
     }
 
     #[test]
+    fn anytime_steps_past_a_tasks_end_are_left_to_its_end() {
+        let (_dir, sweep) = read(
+            "scene = \"synthetic\"\nsteps = 100\n[anytime]\nsteps = [10, 100, 150]\n\
+             [[variants]]\nname = \"short\"\nset = { steps = 50 }\n\
+             [[variants]]\nname = \"long\"\nset = { steps = 200 }\nsize = 64\n",
+        );
+        let sweep = sweep.unwrap();
+        let anytime = sweep.anytime.as_ref().unwrap();
+        assert_eq!(anytime.quality, Quality::PsnrForeground);
+        assert_eq!(sweep.score_at(&sweep.tasks[0]), [10]);
+        assert_eq!(sweep.score_at(&sweep.tasks[1]), [10, 100, 150]);
+        assert_eq!((sweep.tasks[0].size, sweep.tasks[1].size), (128, 64));
+    }
+
+    #[test]
     fn without_variants_the_papers_models_are_swept() {
         let (_dir, ablation) = read("scene = \"lightbox\"\n");
         let names: Vec<String> = ablation
@@ -639,6 +848,47 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
             (
                 format!("{scene}[[variants]]\nname = \"a\"\nset = {{ features = 0 }}"),
                 "variants[0].set.features",
+            ),
+            (format!("{scene}[anytime]\nsteps = [0]"), "anytime.steps[0]"),
+            (
+                format!("{scene}[anytime]\nsteps = [5, 5]"),
+                "anytime.steps[1]",
+            ),
+            (
+                format!("{scene}[anytime]\nsteps = [-1]"),
+                "anytime.steps[0]",
+            ),
+            (
+                format!("{scene}[anytime]\nquality = \"psnr\""),
+                "anytime.quality",
+            ),
+            (
+                format!("{scene}[anytime]\ntargets = [inf]"),
+                "anytime.targets[0]",
+            ),
+            (
+                format!("{scene}[anytime]\ntargets = [0.5, 2]\nquality = \"ssim_full\""),
+                "anytime.targets[1]",
+            ),
+            (
+                format!("{scene}[anytime]\nbudgets_s = [-1]"),
+                "anytime.budgets_s[0]",
+            ),
+            (
+                format!("{scene}[anytime]\nbudgets_s = [60, 30]"),
+                "anytime.budgets_s[1]",
+            ),
+            (
+                format!("{scene}[anytime]\nsteps = [1]\nsooner = 1"),
+                "anytime.sooner",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nsize = 4"),
+                "variants[0].size",
+            ),
+            (
+                format!("{scene}[[variants]]\nname = \"a\"\nsize = 1e9"),
+                "variants[0].size",
             ),
             ("scene = \"no-such-scene\"".into(), "scene"),
             ("scene = \"synthetic\"\ndata = \".\"".into(), "data"),

@@ -1,8 +1,9 @@
 //! A sweep's results: the folder of each task (`<out>/tasks/<index>/`: `result.json`,
-//! `render.png`, `checkpoint.onrf`, `log.txt`), the record a task writes, and the merged
-//! tables and figures (`sweep.csv`, `sweep.md`, `renders.png`, and with noise levels the
-//! pose-noise sections and plots). Records hold nothing of where or how a task ran (no path,
-//! no thread count, no time), so a task gives the same bytes locally and on a cluster.
+//! `timing.json`, `render.png`, `checkpoint.onrf`, `log.txt`), the records a task writes, and
+//! the merged tables and figures (`sweep.csv`, `sweep.md`, `renders.png`, with noise levels
+//! the pose-noise sections and plots, with `[anytime]` the trade-off report). `result.json`
+//! holds nothing of where or how a task ran (no path, no thread count, no time), so a task
+//! gives the same bytes locally and on a cluster; `timing.json` holds the times.
 
 use super::{Source, Sweep, Task};
 use crate::error::{HostError, Result};
@@ -16,6 +17,8 @@ use std::path::{Path, PathBuf};
 
 /// A task's record, written last (atomically): its presence marks the task finished.
 pub const RESULT: &str = "result.json";
+/// How long the task took on what machine: written just before [`RESULT`].
+pub const TIMING: &str = "timing.json";
 /// The first held-out view as rendered by the task's model.
 pub const RENDER: &str = "render.png";
 pub const CHECKPOINT: &str = "checkpoint.onrf";
@@ -41,11 +44,44 @@ pub struct TaskResult {
     pub held_out_views: usize,
     /// Means over the held-out views.
     pub metrics: Metrics,
+    /// The held-out means after each anytime step (`[anytime]`), then at the end.
+    #[serde(default)]
+    pub curve: Vec<CurveRecord>,
+    /// Image size of the task's frames (px, longer side).
+    #[serde(default)]
+    pub size: u16,
+    /// Bytes of the model's arena (its memory plan).
+    #[serde(default)]
+    pub arena_bytes: u64,
+    /// Samples the training rays met in the scene box, over the run.
+    #[serde(default)]
+    pub samples: u64,
     /// Pose error of the training labels and of the corrected labels against the exact poses.
     pub pose_before: Option<Poses>,
     pub pose_after: Option<Poses>,
     /// FNV-1a (64 bit) of the checkpoint file's bytes, hex.
     pub checkpoint_fnv1a: String,
+}
+
+/// A point of a task's anytime curve: the held-out means after `step` steps.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurveRecord {
+    pub step: u32,
+    pub metrics: Metrics,
+}
+
+/// A task's times: the training seconds at each point of its curve (scoring left out), and
+/// the machine.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskTiming {
+    pub index: usize,
+    pub name: String,
+    /// Training seconds at each curve point (as `TaskResult::curve`), the last the whole run.
+    pub seconds: Vec<f64>,
+    pub threads: usize,
+    pub cpu: String,
 }
 
 /// [`ViewMetrics`] as stored.
@@ -156,6 +192,41 @@ pub fn write_result(out: &Path, result: &TaskResult) -> Result<()> {
     write_atomic(&path, text.as_bytes())
 }
 
+pub fn write_timing(out: &Path, timing: &TaskTiming) -> Result<()> {
+    let path = task_dir(out, timing.index).join(TIMING);
+    let mut text = serde_json::to_string_pretty(timing)
+        .map_err(|e| HostError::invalid(&path, format!("encoding failed: {e}")))?;
+    text.push('\n');
+    write_atomic(&path, text.as_bytes())
+}
+
+/// Task `task`'s timing record under `out` (of a finished task), checked against its result:
+/// one time per curve point.
+pub fn read_timing(out: &Path, task: &Task, result: &TaskResult) -> Result<TaskTiming> {
+    let path = task_dir(out, task.index).join(TIMING);
+    let text = std::fs::read_to_string(&path).map_err(|e| HostError::io(&path, e))?;
+    let timing: TaskTiming = serde_json::from_str(&text)
+        .map_err(|e| HostError::invalid(&path, format!("not a task timing record: {e}")))?;
+    if timing.index != task.index || timing.name != task.name {
+        return Err(HostError::invalid(
+            &path,
+            format!("holds task `{}`, not `{}`", timing.name, task.name),
+        ));
+    }
+    if timing.seconds.len() != result.curve.len()
+        || timing.seconds.iter().any(|s| !(s.is_finite() && *s >= 0.0))
+    {
+        return Err(HostError::invalid(
+            &path,
+            format!(
+                "`seconds` must hold {} finite times, one per point of the task's curve",
+                result.curve.len()
+            ),
+        ));
+    }
+    Ok(timing)
+}
+
 /// Task `task`'s record under `out`, `None` when the task has not finished; an error when the
 /// record is unreadable or belongs to another task (another description wrote into `out`).
 pub fn read_result(out: &Path, task: &Task) -> Result<Option<TaskResult>> {
@@ -261,6 +332,15 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
             &levels,
         )?);
     }
+    if let Some(anytime) = &sweep.anytime {
+        let mut timings = Vec::with_capacity(results.len());
+        for (task, result) in sweep.tasks.iter().zip(&results) {
+            timings.push(read_timing(out, task, result)?);
+        }
+        text.push_str(&super::tradeoff::report(
+            sweep, anytime, &results, &timings, out,
+        )?);
+    }
     write_atomic(&out.join("sweep.md"), text.as_bytes())?;
     Ok(text)
 }
@@ -348,7 +428,7 @@ fn csv(results: &[TaskResult]) -> String {
         let cells: Vec<String> = [
             r.index.to_string(),
             format!("\"{}\"", r.name),
-            r.variant.clone(),
+            format!("\"{}\"", r.variant),
             r.seed.to_string(),
             r.rotation_noise_deg.to_string(),
             r.translation_noise_mm.to_string(),
