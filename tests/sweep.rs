@@ -256,9 +256,7 @@ fn a_small_tradeoff_writes_its_report_and_equals_its_variants_trained_one_by_one
         let (ok, text) = common::run_orbit_nerf(&args.concat());
         assert!(ok, "{text}");
         let checkpoint = bytes(&end.join("checkpoint.onrf"));
-        let fnv = checkpoint.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
-            (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
-        });
+        let fnv = orbit_nerf_host::sweep::results::fnv1a(&checkpoint);
         assert_eq!(
             record["checkpoint_fnv1a"],
             format!("{fnv:016x}"),
@@ -297,6 +295,14 @@ fn a_small_tradeoff_writes_its_report_and_equals_its_variants_trained_one_by_one
         assert!(ok, "{text}");
         same_figures(&curve[1]["metrics"], &metrics_json_mean(&scored), "step 20");
     }
+
+    // A bad knob value is refused before anything is written.
+    let refused = dir.join("refused");
+    let mut bad = flags.to_vec();
+    bad[14] = "size=4";
+    let (ok, text) = common::run_orbit_nerf(&[&bad[..], &[refused.to_str().unwrap()]].concat());
+    assert!(!ok && text.contains("variants[2].size"), "{text}");
+    assert!(!refused.join("tradeoff.toml").exists(), "{text}");
 
     // The same flags continue the folder; other flags are refused without touching it.
     let (ok, text) = common::run_orbit_nerf(&[&flags[..], &[out.to_str().unwrap()]].concat());

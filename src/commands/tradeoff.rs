@@ -90,6 +90,8 @@ pub fn run(args: &TradeoffArgs) -> Fallible<()> {
     check_output_folder(&args.out)?;
     let text = description(args)?;
     let path = args.out.join(DESCRIPTION);
+    // Checked before anything is written: a bad knob value leaves no description behind.
+    let sweep = Sweep::parse(&path, &text)?;
     // A folder holding another trade-off is never overwritten: its tasks would not match.
     match std::fs::read_to_string(&path) {
         Ok(existing) if existing != text => {
@@ -107,7 +109,6 @@ pub fn run(args: &TradeoffArgs) -> Fallible<()> {
         }
         Err(e) => return Err(format!("{}: {e}", path.display()).into()),
     }
-    let sweep = Sweep::read(&path)?;
     println!(
         "{}: {} variants, scored after steps {:?} and at the end",
         path.display(),

@@ -252,7 +252,13 @@ impl Sweep {
     /// Read and check a description file; relative paths in it are relative to its folder.
     pub fn read(path: &Path) -> Result<Sweep> {
         let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
-        let table: toml::Table = toml::from_str(&text)
+        Sweep::parse(path, &text)
+    }
+
+    /// Check the description `text`, as if read from `path` (named in errors; relative paths
+    /// are taken relative to its folder).
+    pub fn parse(path: &Path, text: &str) -> Result<Sweep> {
+        let table: toml::Table = toml::from_str(text)
             .map_err(|e| HostError::invalid(path, format!("not valid TOML: {}", e.message())))?;
         let description: SweepDescription =
             serde_path_to_error::deserialize(table).map_err(|e| {

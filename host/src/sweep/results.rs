@@ -406,6 +406,24 @@ fn table(results: &[TaskResult], noise: bool) -> String {
     markdown_table(&header, &rows)
 }
 
+/// The CSV header of [`metric_cells`].
+pub const METRICS_CSV_HEADER: &str = "psnr_full,psnr_right,psnr_foreground,psnr_foreground_right,ssim_full,ssim_right,jnb_full,jnb_right";
+
+/// The stored metrics as CSV cells (empty where n/a), in [`METRICS_CSV_HEADER`]'s order.
+pub fn metric_cells(m: &Metrics) -> [String; 8] {
+    [
+        m.psnr_full,
+        m.psnr_right,
+        m.psnr_foreground,
+        m.psnr_foreground_right,
+        m.ssim_full,
+        m.ssim_right,
+        m.jnb_full,
+        m.jnb_right,
+    ]
+    .map(|v| v.map_or(String::new(), |v| v.to_string()))
+}
+
 /// The CSV: a row per task, every stored number (empty where n/a).
 fn csv(results: &[TaskResult]) -> String {
     let number = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
@@ -420,8 +438,8 @@ fn csv(results: &[TaskResult]) -> String {
             None => Default::default(),
         }
     };
-    let mut text = String::from(
-        "index,name,variant,seed,rotation_noise_deg,translation_noise_mm,steps,held_out_views,psnr_full,psnr_right,psnr_foreground,psnr_foreground_right,ssim_full,ssim_right,jnb_full,jnb_right,labels_rotation_deg,labels_about_view_axis_deg,labels_across_view_axis_deg,labels_position_m,corrected_rotation_deg,corrected_about_view_axis_deg,corrected_across_view_axis_deg,corrected_position_m,checkpoint_fnv1a\n",
+    let mut text = format!(
+        "index,name,variant,seed,rotation_noise_deg,translation_noise_mm,steps,held_out_views,{METRICS_CSV_HEADER},labels_rotation_deg,labels_about_view_axis_deg,labels_across_view_axis_deg,labels_position_m,corrected_rotation_deg,corrected_about_view_axis_deg,corrected_across_view_axis_deg,corrected_position_m,checkpoint_fnv1a\n",
     );
     for r in results {
         let m = &r.metrics;
@@ -436,19 +454,7 @@ fn csv(results: &[TaskResult]) -> String {
             r.held_out_views.to_string(),
         ]
         .into_iter()
-        .chain(
-            [
-                m.psnr_full,
-                m.psnr_right,
-                m.psnr_foreground,
-                m.psnr_foreground_right,
-                m.ssim_full,
-                m.ssim_right,
-                m.jnb_full,
-                m.jnb_right,
-            ]
-            .map(number),
-        )
+        .chain(metric_cells(m))
         .chain(poses(r.pose_before))
         .chain(poses(r.pose_after))
         .chain([r.checkpoint_fnv1a.clone()])

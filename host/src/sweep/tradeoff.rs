@@ -6,7 +6,7 @@
 //! plots (final quality against training time and against arena memory) and the anytime
 //! curves, one plot per knob (the variants named `<knob>=<value>`, with the reference).
 
-use super::results::{TaskResult, TaskTiming};
+use super::results::{METRICS_CSV_HEADER, TaskResult, TaskTiming, metric_cells};
 use super::{Anytime, Quality, Sweep};
 use crate::error::Result;
 use crate::io::write_atomic;
@@ -519,14 +519,12 @@ fn table(curves: &[VariantCurve], anytime: &Anytime) -> String {
 /// A row per task and curve point: the task, the point's step and training seconds, every
 /// held-out mean, the arena and the task's samples per second.
 fn csv(results: &[TaskResult], timings: &[TaskTiming]) -> String {
-    let number = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
-    let mut text = String::from(
-        "index,variant,seed,size,step,seconds,psnr_full,psnr_right,psnr_foreground,psnr_foreground_right,ssim_full,ssim_right,arena_bytes,samples_per_second\n",
+    let mut text = format!(
+        "index,variant,seed,size,step,seconds,{METRICS_CSV_HEADER},arena_bytes,samples_per_second\n"
     );
     for (r, t) in results.iter().zip(timings) {
         let rate = r.samples as f64 / t.seconds.last().copied().unwrap_or(f64::NAN);
         for (point, seconds) in r.curve.iter().zip(&t.seconds) {
-            let m = &point.metrics;
             let cells: Vec<String> = [
                 r.index.to_string(),
                 format!("\"{}\"", r.variant),
@@ -536,20 +534,14 @@ fn csv(results: &[TaskResult], timings: &[TaskTiming]) -> String {
                 seconds.to_string(),
             ]
             .into_iter()
-            .chain(
-                [
-                    m.psnr_full,
-                    m.psnr_right,
-                    m.psnr_foreground,
-                    m.psnr_foreground_right,
-                    m.ssim_full,
-                    m.ssim_right,
-                ]
-                .map(number),
-            )
+            .chain(metric_cells(&point.metrics))
             .chain([
                 r.arena_bytes.to_string(),
-                number(Some(rate).filter(|v| v.is_finite())),
+                if rate.is_finite() {
+                    rate.to_string()
+                } else {
+                    String::new()
+                },
             ])
             .collect();
             text.push_str(&cells.join(","));
