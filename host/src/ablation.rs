@@ -276,17 +276,11 @@ impl Experiment<'_> {
                     .iter()
                     .filter_map(|&i| truth.get(i).copied())
                     .collect();
-                let dim = config.embedding_dim as usize;
                 let corrected: Vec<Pose> = labels
                     .iter()
                     .enumerate()
                     .map(|(slot, label)| {
-                        let params = trainer.frame_parameters(slot).unwrap_or(&[]);
-                        let correction = if config.pose_correction {
-                            PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]))
-                        } else {
-                            PoseCorrection::default()
-                        };
+                        let correction = trainer.pose_correction(slot).unwrap_or_default();
                         corrected_pose(label, &correction, config.pose_pivot_point())
                     })
                     .collect();

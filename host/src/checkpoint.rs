@@ -25,8 +25,10 @@ use std::path::{Path, PathBuf};
 
 /// First bytes of every checkpoint file.
 pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
-/// The payload encoding this build writes and the only one it reads.
-pub const FORMAT_VERSION: u32 = 2;
+/// The payload encoding this build writes and the only one it reads. Version 3: the density
+/// and the learned pose translations are in units of the scene box (`Config::length_unit`),
+/// so a version 2 model of a box other than [-1.5, 1.5]³ would render differently.
+pub const FORMAT_VERSION: u32 = 3;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
@@ -237,7 +239,9 @@ mod tests {
         bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
         let message = load_err(&path, &bytes);
         assert!(
-            message.contains("format version 7, this build reads version 2"),
+            message.contains(&format!(
+                "format version 7, this build reads version {FORMAT_VERSION}"
+            )),
             "{message}"
         );
     }

@@ -126,11 +126,13 @@ impl PoseCorrection {
     /// Smallest scalar part used in the gradient of `sqrt(1 - |v|²)`.
     pub const MIN_SCALAR: f32 = 1e-3;
 
-    /// From the six parameters `[dt.x, dt.y, dt.z, v.x, v.y, v.z]` (zeros if fewer).
-    pub fn from_params(p: &[f32]) -> Self {
+    /// From the six parameters `[u.x, u.y, u.z, v.x, v.y, v.z]` (zeros if fewer), where the
+    /// learned translation `u` is in units of `length_unit` (`Config::length_unit`), so it
+    /// learns alike at every scene scale: `dt = u * length_unit`.
+    pub fn from_params(p: &[f32], length_unit: f32) -> Self {
         match p {
             [a, b, c, d, e, f, ..] => PoseCorrection {
-                dt: Vec3::new(*a, *b, *c),
+                dt: Vec3::new(*a, *b, *c) * length_unit,
                 v: Vec3::new(*d, *e, *f),
             },
             _ => PoseCorrection::default(),

@@ -264,6 +264,20 @@ impl Config {
         ..Config::DEFAULT
     };
 
+    /// The length that is one unit for the field's density (a sample's optical depth is
+    /// `sigma * step / length_unit`) and for the pose corrections' learned translation: the
+    /// scene box's largest half-side over 1.5, so the default box `[-1.5, 1.5]³` (NeRF
+    /// synthetic's scale, which K-Planes' initialisation and rates were tuned at) has unit 1.
+    /// Training then depends on the scene's shape, not its size: the same images with the
+    /// labels and the box scaled by any factor train alike.
+    pub fn length_unit(&self) -> f32 {
+        let mut half = 0.0f32;
+        for a in 0..3 {
+            half = half.max(0.5 * (self.aabb_max[a] - self.aabb_min[a]));
+        }
+        half / 1.5
+    }
+
     /// Inputs of the density MLP: the plane features of every scale.
     pub const fn density_inputs(&self) -> usize {
         self.scales as usize * self.features as usize

@@ -35,9 +35,11 @@ pub struct ExportArgs {
     #[arg(long, default_value_t = geometry::extract::DEFAULT_RESOLUTION,
           value_parser = parse_resolution, allow_hyphen_values = true)]
     resolution: u32,
-    /// The density (sigma, per world unit of length) the surface passes through. Default:
-    /// ln 2 / the model's marching step (box diagonal / march_steps), i.e. where one marching
-    /// step becomes half opaque; lower it for a fuller surface, raise it for a tighter one.
+    /// The density the surface passes through (sigma, per unit of length where the unit is the
+    /// scene box's largest half-side over 1.5, so thresholds carry over between scenes of any
+    /// size). Default: where a 1/128 of the box diagonal becomes half opaque (ln 2 * 128 /
+    /// diagonal in those units; 17.1 on a cubic box); lower it for a fuller surface, raise it
+    /// for a tighter one.
     #[arg(long, value_parser = parse_threshold, allow_hyphen_values = true)]
     threshold: Option<f32>,
     /// Also write a picture of the mesh to this PNG (orthographic, 512 px, seen from

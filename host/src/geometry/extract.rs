@@ -8,7 +8,7 @@ use crate::memory::{self, Part};
 use crate::train::to_rgb8;
 use fast_surface_nets::ndshape::{RuntimeShape, Shape};
 use fast_surface_nets::{SurfaceNetsBuffer, surface_nets};
-use orbit_nerf_core::{Executor, Trainer};
+use orbit_nerf_core::{Config, Executor, Trainer};
 use std::path::Path;
 
 /// Grid samples along the box's longest side that `export` and the reports use by default.
@@ -23,9 +23,8 @@ pub struct SurfaceOptions {
     /// Grid samples along the longest side of the scene box (cubic voxels, so the shorter
     /// sides get proportionally fewer); from 8 to [`MAX_RESOLUTION`].
     pub resolution: u32,
-    /// The density (`sigma`, per world unit) the surface passes through; `None`: the density
-    /// at which one of the model's marching steps is half opaque (`ln 2 / step`), so the
-    /// default follows the scene's scale.
+    /// The density (`sigma`, per length unit, see `Config::length_unit`) the surface passes
+    /// through; `None`: [`default_threshold`].
     pub threshold: Option<f32>,
 }
 
@@ -38,16 +37,28 @@ impl Default for SurfaceOptions {
     }
 }
 
+/// The default surface lies where a segment of 1/`DEFAULT_SEGMENTS` of the box diagonal is
+/// half opaque.
+const DEFAULT_SEGMENTS: f32 = 128.0;
+
+/// The density at which a segment of the scene box's diagonal over [`DEFAULT_SEGMENTS`] is half
+/// opaque: `ln 2 * 128 / diagonal`, the diagonal in length units. It depends on the box's
+/// shape only, not its size (length units) nor the model's `march_steps`, so one default
+/// serves every scene and every training setup (17.1 on any cubic box).
+pub fn default_threshold(config: &Config) -> f32 {
+    let diagonal = (0..3)
+        .map(|a| (config.aabb_max[a] - config.aabb_min[a]) / config.length_unit())
+        .map(|side| side * side)
+        .sum::<f32>()
+        .sqrt();
+    std::f32::consts::LN_2 * DEFAULT_SEGMENTS / diagonal
+}
+
 /// The density threshold `options` stand for with the model of `trainer`.
 pub fn threshold(trainer: &Trainer<'_>, options: &SurfaceOptions) -> f32 {
-    options.threshold.unwrap_or_else(|| {
-        let c = trainer.config();
-        let diagonal = (0..3)
-            .map(|a| (c.aabb_max[a] - c.aabb_min[a]).powi(2))
-            .sum::<f32>()
-            .sqrt();
-        std::f32::consts::LN_2 / (diagonal / c.march_steps as f32)
-    })
+    options
+        .threshold
+        .unwrap_or_else(|| default_threshold(trainer.config()))
 }
 
 /// The regular grid over the scene box: its sample spacing and counts per axis, with one
@@ -241,4 +252,34 @@ fn vertex_colours<E: Executor>(
         .chunks_exact(3)
         .map(|c| [c[0], c[1], c[2]])
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_threshold_depends_on_the_box_shape_only() {
+        let boxed = |min: [f32; 3], max: [f32; 3]| {
+            default_threshold(&Config {
+                aabb_min: min,
+                aabb_max: max,
+                ..Config::DEFAULT
+            })
+        };
+        let cube = boxed([-1.5; 3], [1.5; 3]);
+        // ln 2 * 128 / (3 * sqrt 3): the diagonal of a cube of half-side 1.5 units.
+        assert!((cube - 17.075).abs() < 1e-3, "{cube}");
+        for scale in [1e-3, 0.4, 1e3] {
+            let scaled = boxed([-scale; 3], [scale; 3]);
+            assert!((scaled - cube).abs() <= 1e-5 * cube, "{scale}: {scaled}");
+        }
+        let march_steps = default_threshold(&Config {
+            march_steps: 64,
+            ..Config::DEFAULT
+        });
+        assert_eq!(march_steps, default_threshold(&Config::DEFAULT));
+        // A flat box: the same longest side, a shorter diagonal, a higher threshold.
+        assert!(boxed([-1.5, -1.5, -0.1], [1.5, 1.5, 0.1]) > cube);
+    }
 }

@@ -30,7 +30,7 @@ impl Chunk<'_> {
             let (colour, _) = render::composite_forward(
                 &self.sigma[start..end],
                 &self.rgb[start..end],
-                shared.step_size,
+                shared.optical_step,
                 ray.background,
             );
             let target = ray.target;
@@ -43,7 +43,7 @@ impl Chunk<'_> {
             render::composite_backward(
                 &self.sigma[start..end],
                 &self.rgb[start..end],
-                shared.step_size,
+                shared.optical_step,
                 colour,
                 d_colour,
                 &mut self.d_sigma[start..end],
@@ -81,7 +81,10 @@ impl Chunk<'_> {
             let ray = self.first_ray + r;
             let slot = shared.ray_frames[ray] as usize;
             let g = &self.ray_grads[r * 6..r * 6 + 6];
-            let correction = PoseCorrection::from_params(&params[slot * n + dim..(slot + 1) * n]);
+            let correction = PoseCorrection::from_params(
+                &params[slot * n + dim..(slot + 1) * n],
+                shared.length_unit,
+            );
             let label = Vec3::from_array(shared.rays[ray].label_direction);
             let mut d_v = correction.rotation_vjp(label, Vec3::new(g[3], g[4], g[5]));
             // With a pivot the origin is p + R (c - p) + u: the rotation also moves it.
@@ -91,7 +94,8 @@ impl Chunk<'_> {
             }
             let dst = &mut self.frame_grads[slot * n + dim..(slot + 1) * n];
             for a in 0..3 {
-                dst[a] += g[a];
+                // The parameter is u, with dt = u * length_unit.
+                dst[a] += g[a] * shared.length_unit;
                 dst[3 + a] += d_v[a];
             }
         }

@@ -66,6 +66,7 @@ impl<'a> Trainer<'a> {
             let correction = if c.pose_correction {
                 PoseCorrection::from_params(
                     &self.frame_params[slot * n + c.embedding_dim as usize..(slot + 1) * n],
+                    self.length_unit,
                 )
             } else {
                 PoseCorrection::default()

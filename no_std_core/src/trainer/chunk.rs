@@ -161,7 +161,7 @@ impl Chunk<'_> {
             let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
             let kept = render::kept_samples(
                 &self.sigma[start..end],
-                shared.step_size,
+                shared.optical_step,
                 c.min_transmittance,
             );
             self.ray_start[r] = write as u32;
@@ -267,7 +267,7 @@ impl Chunk<'_> {
                 let (colour, _) = render::composite_forward(
                     &self.sigma[start..stop],
                     &self.rgb[start..stop],
-                    shared.step_size,
+                    shared.optical_step,
                     c.background,
                 );
                 let o = (first - self.first_ray + r) * 3;

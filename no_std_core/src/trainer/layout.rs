@@ -150,12 +150,16 @@ impl<'a> Trainer<'a> {
             min: Vec3::from_array(c.aabb_min),
             max: Vec3::from_array(c.aabb_max),
         };
+        let step_size = aabb.diagonal() / config.march_steps as f32;
+        let length_unit = config.length_unit();
         let mut trainer = Trainer {
             config,
             geometry: PlaneGeometry::new(&config),
             layout: config.mlp(),
             aabb,
-            step_size: aabb.diagonal() / config.march_steps as f32,
+            step_size,
+            optical_step: step_size / length_unit,
+            length_unit,
             planes,
             plane_master,
             plane_m,

@@ -99,7 +99,12 @@ pub struct Trainer<'a> {
     geometry: PlaneGeometry,
     layout: MlpLayout,
     aabb: Aabb,
+    /// Distance between samples along a ray, in world units.
     step_size: f32,
+    /// Optical depth of one step per unit density: `step_size / length_unit`.
+    optical_step: f32,
+    /// `Config::length_unit`.
+    length_unit: f32,
     planes: &'a mut [f16],
     plane_master: &'a mut [f32],
     plane_m: &'a mut [f32],
@@ -156,6 +161,8 @@ struct Shared<'s> {
     layout: &'s MlpLayout,
     aabb: Aabb,
     step_size: f32,
+    optical_step: f32,
+    length_unit: f32,
     planes: &'s [f16],
     mlp: &'s [f32],
     occupancy: OccupancyView<'s>,
@@ -253,6 +260,8 @@ impl<'a> Trainer<'a> {
             layout: &self.layout,
             aabb: self.aabb,
             step_size: self.step_size,
+            optical_step: self.optical_step,
+            length_unit: self.length_unit,
             planes: self.planes,
             mlp: self.mlp,
             occupancy: OccupancyView {

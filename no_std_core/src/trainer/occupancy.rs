@@ -45,7 +45,7 @@ impl<'a> Trainer<'a> {
             .occupancy_density
             .iter()
             .fold(0.0f64, |a, d| a + *d as f64);
-        let mean = (sum / cells as f64) as f32 * self.step_size;
+        let mean = (sum / cells as f64) as f32 * self.optical_step;
         let threshold = c.occupancy_threshold.min(mean);
         for (w, word) in self.occupancy_bits.iter_mut().enumerate() {
             let mut bits = 0u64;
@@ -56,7 +56,7 @@ impl<'a> Trainer<'a> {
                 .take(64)
                 .enumerate()
             {
-                bits |= ((*d * self.step_size > threshold) as u64) << b;
+                bits |= ((*d * self.optical_step > threshold) as u64) << b;
             }
             *word = bits;
         }

@@ -10,6 +10,20 @@ impl<'a> Trainer<'a> {
         self.frame_params.get(slot * n..(slot + 1) * n)
     }
 
+    /// The pose correction a frame slot has learned, in world units (the identity when pose
+    /// correction is off).
+    pub fn pose_correction(&self, slot: usize) -> Option<PoseCorrection> {
+        let params = self.frame_parameters(slot)?;
+        Some(if self.config.pose_correction {
+            let pose = params
+                .get(self.config.embedding_dim as usize..)
+                .unwrap_or(&[]);
+            PoseCorrection::from_params(pose, self.length_unit)
+        } else {
+            PoseCorrection::default()
+        })
+    }
+
     /// Mean appearance embedding of the occupied frames (zeros without frames).
     pub fn mean_embedding(&self, out: &mut [f32]) {
         let n = self.config.frame_params();
