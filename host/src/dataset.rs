@@ -16,6 +16,10 @@ pub struct Frame {
     pub pixels: Vec<u8>,
     /// Row-major foreground mask, one byte per pixel (0 = background, 255 = target).
     pub mask: Option<Vec<u8>>,
+    /// The mask is the image's own alpha (above one half) and the pixels are already
+    /// composited on the background by that alpha: the background is removed exactly, edges
+    /// included, so [`Frame::apply_mask`] leaves them as they are.
+    pub alpha_composited: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -51,12 +55,16 @@ pub enum SceneBoxOrigin {
 impl Frame {
     /// Remove the background as the paper does: every pixel whose mask is 0 gets the
     /// background colour (in [0, 1], rounded to 8 bits), so training targets and evaluation
-    /// references hold no sky noise. Without a mask nothing changes; returns whether the frame
-    /// had one.
+    /// references hold no sky noise; returns whether it painted. Without a mask nothing
+    /// changes, nor over pixels composited by their alpha: they have no sky, and painting
+    /// their partly covered edge pixels would only harden the edges (1.7 dB less on lego).
     pub fn apply_mask(&mut self, background: [f32; 3]) -> bool {
         let Some(mask) = &self.mask else {
             return false;
         };
+        if self.alpha_composited {
+            return false;
+        }
         let sky = background.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
         for (pixel, _) in self
             .pixels
@@ -72,7 +80,7 @@ impl Frame {
 
 impl Dataset {
     /// [`Frame::apply_mask`] on every frame with the dataset's background; returns how many
-    /// frames had a mask.
+    /// frames it painted.
     pub fn apply_masks(&mut self) -> usize {
         let background = self.background;
         self.frames
@@ -94,8 +102,8 @@ mod tests {
     use orbit_nerf_core::glam::{Mat3, Vec3};
 
     #[test]
-    fn masks_paint_the_background_only_where_the_mask_is_zero() {
-        let frame = |mask: Option<Vec<u8>>| Frame {
+    fn masks_paint_the_background_only_where_the_mask_is_zero_and_not_over_alpha() {
+        let frame = |mask: Option<Vec<u8>>, alpha_composited: bool| Frame {
             name: "f".into(),
             camera: Camera {
                 width: 3,
@@ -111,10 +119,15 @@ mod tests {
             },
             pixels: vec![10, 20, 30, 40, 50, 60, 70, 80, 90],
             mask,
+            alpha_composited,
         };
         let mut dataset = Dataset {
             source: "d".into(),
-            frames: vec![frame(Some(vec![0, 255, 0])), frame(None)],
+            frames: vec![
+                frame(Some(vec![0, 255, 0]), false),
+                frame(None, false),
+                frame(Some(vec![0, 255, 0]), true),
+            ],
             scene_min: [-1.0; 3],
             scene_max: [1.0; 3],
             scene_box: SceneBoxOrigin::Stated("the test".into()),
@@ -125,9 +138,9 @@ mod tests {
             dataset.frames[0].pixels,
             vec![255, 0, 128, 40, 50, 60, 255, 0, 128]
         );
-        assert_eq!(
-            dataset.frames[1].pixels,
-            vec![10, 20, 30, 40, 50, 60, 70, 80, 90]
-        );
+        // No mask, or a mask from the alpha the pixels are already composited by: unchanged.
+        for unchanged in &dataset.frames[1..] {
+            assert_eq!(unchanged.pixels, vec![10, 20, 30, 40, 50, 60, 70, 80, 90]);
+        }
     }
 }

@@ -616,6 +616,7 @@ mod tests {
                     pose,
                     pixels,
                     mask: masks.then_some(mask),
+                    alpha_composited: false,
                 }
             })
             .collect()

@@ -304,6 +304,11 @@ mod tests {
             &[255, 0, 0, 255, 0, 0, 0, 0, blue, 0, 0, 0]
         );
         assert_eq!(frame.mask.as_ref().unwrap()[..4], [255, 255, 0, 0]);
+        // The alpha already removed the background: applying the mask keeps the faint edge.
+        assert!(frame.alpha_composited);
+        let mut masked = frame.clone();
+        assert!(!masked.apply_mask(options.background));
+        assert_eq!(masked.pixels, frame.pixels);
         // Intrinsics scale with the image: f and the principal point shrink by 4.
         assert!((frame.camera.fx - 0.5 * 4.0 / (0.5f32 * 0.69).tan()).abs() < 1e-5);
         assert_eq!((frame.camera.cx, frame.camera.cy), (2.0, 1.0));

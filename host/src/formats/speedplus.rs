@@ -500,6 +500,7 @@ impl FrameDecoder {
             pose,
             pixels,
             mask,
+            alpha_composited: false,
         })
     }
 }

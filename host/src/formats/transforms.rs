@@ -77,6 +77,8 @@ pub(crate) struct DecodedFrame {
     pub(crate) output_size: (u32, u32),
     pub(crate) pixels: Vec<u8>,
     pub(crate) mask: Option<Vec<u8>>,
+    /// The mask came from the image's alpha, which the pixels are composited by.
+    pub(crate) alpha_composited: bool,
 }
 
 impl DecodedFrame {
@@ -99,6 +101,7 @@ impl DecodedFrame {
             pose,
             pixels: self.pixels,
             mask: self.mask,
+            alpha_composited: self.alpha_composited,
         }
     }
 }
@@ -215,6 +218,7 @@ pub(crate) fn decode_frame(job: &FrameJob, options: &LoadOptions) -> Result<Deco
         source_size,
         output_size,
         pixels,
+        alpha_composited: job.mask.is_none() && has_alpha,
         mask,
     })
 }
