@@ -62,15 +62,7 @@ impl<'a> Trainer<'a> {
             };
             let (i, j) = (pixel % meta.width, pixel / meta.width);
             let (o, d) = Self::pixel_ray(&camera, &meta.pose(), i, j);
-            let n = c.frame_params();
-            let correction = if c.pose_correction {
-                PoseCorrection::from_params(
-                    &self.frame_params[slot * n + c.embedding_dim as usize..(slot + 1) * n],
-                    self.length_unit,
-                )
-            } else {
-                PoseCorrection::default()
-            };
+            let correction = self.pose_correction(slot).unwrap_or_default();
             let px =
                 &self.frames.pixels[(slot * self.frames.max_pixels + pixel as usize) * 3..][..3];
             // The mask as alpha: the pixel was composited onto `background` with it.
