@@ -7,6 +7,7 @@
 //! target computes the same bits.
 
 use crate::config::{Config, LANES, MAX_SCALES};
+use crate::fused;
 use half::f16;
 
 /// The two world axes spanned by each of the three planes of a scale: xy, xz, yz.
@@ -88,7 +89,7 @@ fn load_texel<const F: usize>(planes: &[f16], texel: usize) -> [f32; F] {
         target_feature = "f16c",
         target_feature = "avx"
     ))]
-    #[allow(unsafe_code)] // The crate's one unsafe block: the f16c conversion intrinsics.
+    #[allow(unsafe_code)] // The f16c conversion intrinsics (the other unsafe block: `fused`).
     {
         use core::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
         // F is a multiple of 8 (validated config). The conversion is exact, so this path
@@ -364,17 +365,15 @@ pub fn sh_backward(bands: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
 /// One lane-row: the `LANES` values of one feature across the samples of a mini-batch.
 pub type Row = [f32; LANES];
 
-/// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes. `x` has `inputs` rows and
+/// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes, one fused multiply-add per
+/// term in order of `k`. `x` has `inputs` rows and
 /// `y` has `outputs` rows.
 pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
     let outputs = y.len();
     for (n, yn) in y.iter_mut().enumerate() {
         let mut acc = [b[n]; LANES];
         for (k, xk) in x.iter().enumerate() {
-            let wk = w[k * outputs + n];
-            for l in 0..LANES {
-                acc[l] += wk * xk[l];
-            }
+            fused::axpy(&mut acc, w[k * outputs + n], xk);
         }
         *yn = acc;
     }
@@ -411,11 +410,8 @@ pub fn layer_backward(
         for (k, dxk) in dx.iter_mut().enumerate() {
             let wk = &w[k * outputs..(k + 1) * outputs];
             let mut acc = [0.0f32; LANES];
-            for (n, dyn_) in dy.iter().enumerate() {
-                let wkn = wk[n];
-                for l in 0..LANES {
-                    acc[l] += wkn * dyn_[l];
-                }
+            for (wkn, dyn_) in wk.iter().zip(dy) {
+                fused::axpy(&mut acc, *wkn, dyn_);
             }
             *dxk = acc;
         }
@@ -425,37 +421,41 @@ pub fn layer_backward(
 const ONES: Row = [1.0; LANES];
 
 /// `dst[n] += sum_l coef[l] * dyt[l * stride + n]` for `n < dst.len()`, summed over the
-/// lanes in order, 32 (then 8) columns at a time.
+/// lanes in order, 64 (then 32, then 8) columns at a time: 64 columns are the eight
+/// accumulator registers that keep both FMA pipes busy.
 #[inline(always)]
 fn accumulate_outer(coef: &Row, dyt: &[f32], stride: usize, dst: &mut [f32]) {
     let mut col = 0;
+    while col + 64 <= stride {
+        accumulate_columns::<64>(coef, dyt, stride, col, dst);
+        col += 64;
+    }
     while col + 32 <= stride {
-        let mut acc = [0.0f32; 32];
-        for l in 0..LANES {
-            let s = coef[l];
-            let d = &dyt[l * stride + col..l * stride + col + 32];
-            for j in 0..32 {
-                acc[j] += s * d[j];
-            }
-        }
-        for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
-            *o += a;
-        }
+        accumulate_columns::<32>(coef, dyt, stride, col, dst);
         col += 32;
     }
     while col < stride {
-        let mut acc = [0.0f32; 8];
-        for l in 0..LANES {
-            let s = coef[l];
-            let d = &dyt[l * stride + col..l * stride + col + 8];
-            for j in 0..8 {
-                acc[j] += s * d[j];
-            }
-        }
-        for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
-            *o += a;
-        }
+        accumulate_columns::<8>(coef, dyt, stride, col, dst);
         col += 8;
+    }
+}
+
+/// [`accumulate_outer`] for the `W` columns from `col`.
+#[inline(always)]
+fn accumulate_columns<const W: usize>(
+    coef: &Row,
+    dyt: &[f32],
+    stride: usize,
+    col: usize,
+    dst: &mut [f32],
+) {
+    let mut acc = [0.0f32; W];
+    for l in 0..LANES {
+        let start = l * stride + col;
+        fused::axpy(&mut acc, coef[l], &dyt[start..start + W]);
+    }
+    for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
+        *o += a;
     }
 }
 

@@ -14,6 +14,7 @@ pub mod camera;
 pub mod config;
 pub(crate) mod field;
 pub(crate) mod frames;
+pub(crate) mod fused;
 pub(crate) mod optim;
 pub mod profile;
 pub(crate) mod render;
