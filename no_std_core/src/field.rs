@@ -89,7 +89,7 @@ fn load_texel<const F: usize>(planes: &[f16], texel: usize) -> [f32; F] {
         target_feature = "f16c",
         target_feature = "avx"
     ))]
-    #[allow(unsafe_code)] // The f16c conversion intrinsics (the other unsafe block: `fused`).
+    #[allow(unsafe_code)] // The f16c conversion intrinsics (the others: `fused::axpy`).
     {
         use core::arch::x86_64::{__m128i, _mm_loadu_si128, _mm256_cvtph_ps, _mm256_storeu_ps};
         // F is a multiple of 8 (validated config). The conversion is exact, so this path
@@ -366,8 +366,7 @@ pub fn sh_backward(bands: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
 pub type Row = [f32; LANES];
 
 /// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes, one fused multiply-add per
-/// term in order of `k`. `x` has `inputs` rows and
-/// `y` has `outputs` rows.
+/// term in order of `k`. `x` has `inputs` rows and `y` has `outputs` rows.
 pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
     let outputs = y.len();
     for (n, yn) in y.iter_mut().enumerate() {

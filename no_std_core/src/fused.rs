@@ -1,48 +1,15 @@
 //! Fused multiply-add, `a * b + c` rounded once, with the same bits on every target.
 //!
 //! x86-64 with FMA (the host build's `x86-64-v3`) runs the MLP kernels' lane loops as AVX
-//! `vfmadd` eight lanes at a time, hard-float 32-bit ARM (Cortex-M4F) uses `vfma.f32`, and
-//! every other target calls `libm::fmaf`, which is correctly rounded (a hardware `fmadd` on
-//! aarch64, exact software elsewhere). A fused operation is
-//! correctly rounded by definition, so both give the same bits, whatever the vector width.
+//! `vfmadd` eight lanes at a time, hard-float 32-bit ARM (Cortex-M4F) as `vfma.f32` four
+//! lanes at a time, and every other target calls `libm::fmaf`, which is correctly rounded (a
+//! hardware `fmadd` on aarch64, exact software elsewhere). A fused operation is correctly
+//! rounded by definition, so all give the same bits, whatever the vector width.
 //! One fused operation instead of a multiply and an add halves the MLPs' arithmetic, which
 //! on CPUs without separate add pipes (Intel's) is what bounds them.
 
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
 use core::arch::x86_64::{__m256, _mm256_fmadd_ps, _mm256_set1_ps};
-
-/// `a * b + c`, rounded once.
-#[inline(always)]
-pub fn mul_add(a: f32, b: f32, c: f32) -> f32 {
-    // Hard-float 32-bit ARM (the Cortex-M4F/M7 targets): one `vfma.f32`, where `libm::fmaf`
-    // would emulate it in software double precision.
-    #[cfg(all(target_arch = "arm", target_abi = "eabihf"))]
-    {
-        let mut acc = c.to_bits();
-        #[allow(unsafe_code)] // An FPU instruction; no memory is touched.
-        // SAFETY: the operands move through s0-s2, declared clobbered (rustc's asm check
-        // does not see the target's FPU features, so the values travel in core registers).
-        unsafe {
-            core::arch::asm!(
-                "vmov s0, r1",
-                "vmov s1, r2",
-                "vmov s2, r0",
-                "vfma.f32 s2, s0, s1",
-                "vmov r0, s2",
-                inout("r0") acc,
-                in("r1") a.to_bits(),
-                in("r2") b.to_bits(),
-                out("s0") _,
-                out("s1") _,
-                out("s2") _,
-                options(pure, nomem, nostack, preserves_flags),
-            );
-        }
-        f32::from_bits(acc)
-    }
-    #[cfg(not(all(target_arch = "arm", target_abi = "eabihf")))]
-    libm::fmaf(a, b, c)
-}
 
 /// `acc[i] = s * x[i] + acc[i]` (rounded once) for `i < min(acc.len(), x.len())`.
 #[inline(always)]
@@ -109,11 +76,12 @@ pub fn axpy(acc: &mut [f32], s: f32, x: &[f32]) {
     portable_axpy(acc, s, x);
 }
 
-/// [`axpy`] one element at a time through `libm::fmaf`: the twin every target can run.
+/// [`axpy`] one element at a time through `libm::fmaf`: the twin every target can run (on
+/// ARM only for lengths that are not a multiple of four, which the MLPs never have).
 #[inline(always)]
 fn portable_axpy(acc: &mut [f32], s: f32, x: &[f32]) {
     for (a, xv) in acc.iter_mut().zip(x) {
-        *a = mul_add(s, *xv, *a);
+        *a = libm::fmaf(s, *xv, *a);
     }
 }
 
@@ -169,7 +137,7 @@ mod tests {
     fn fused_rounds_once() {
         // (1 + e)(1 - e) - 1 = -e^2: lost entirely by a multiply then an add.
         let e = f32::EPSILON;
-        assert_eq!(mul_add(1.0 + e, 1.0 - e, -1.0), -e * e);
+        assert_eq!(libm::fmaf(1.0 + e, 1.0 - e, -1.0), -e * e);
         assert_eq!((1.0 + e) * (1.0 - e) - 1.0, 0.0);
         let mut acc = [-1.0f32; 9];
         axpy(&mut acc, 1.0 + e, &[1.0 - e; 9]);
