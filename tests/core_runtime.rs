@@ -12,6 +12,7 @@ use orbit_nerf_core::{
 };
 use orbit_nerf_host::dataset::{self, Dataset};
 use orbit_nerf_host::formats;
+use orbit_nerf_host::sweep::results::fnv1a;
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -114,13 +115,6 @@ fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
     assert!(a == one_thread, "1 thread and 2 threads differ");
     let other_seed = checkpoint_after(200, 2, 8).unwrap();
     assert!(a != other_seed, "the seed has no effect");
-}
-
-/// FNV-1a, 64 bits: a fixed, dependency-free fingerprint of checkpoint bytes.
-fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-    })
 }
 
 /// Refactors and ports must not change a single bit of what training computes: the checkpoint

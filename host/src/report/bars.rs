@@ -1,6 +1,6 @@
 //! Stacked bar charts (the bitmap font for the text, plain rectangles for the bars).
 
-use super::canvas::{Canvas, GLYPH_HEIGHT, Rgb, text_width};
+use super::canvas::{Canvas, GLYPH_HEIGHT, INK, Rgb, TICK_LENGTH, text_width};
 use super::plot::tick_labels;
 use crate::error::Result;
 use crate::io;
@@ -10,10 +10,8 @@ use plotters::prelude::Ranged;
 const WIDTH: usize = 1100;
 const HEIGHT: usize = 520;
 const TEXT_SCALE: usize = 2;
-const TICK_LENGTH: usize = 6;
 const SWATCH: usize = 16;
 const LEGEND_ROW: usize = 22;
-const INK: Rgb = [0, 0, 0];
 const GRID: Rgb = [225, 225, 225];
 /// Tableau 20's strong and light tones, alternating, so neighbouring segments differ.
 const SEGMENT_COLOURS: [Rgb; 14] = [

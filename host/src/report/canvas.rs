@@ -97,6 +97,10 @@ fn for_each_text_pixel(text: &str, scale: usize, mut set: impl FnMut(usize, usiz
 }
 
 pub(super) type Rgb = [u8; 3];
+/// Text, axes and ticks in every figure.
+pub(super) const INK: Rgb = [0, 0, 0];
+/// Axis ticks' length in pixels, the same in line plots and bar charts.
+pub(super) const TICK_LENGTH: usize = 6;
 
 /// A packed RGB8 image being drawn on; writes outside it are dropped.
 pub(super) struct Canvas<'a> {

@@ -1,6 +1,6 @@
 //! Line plots (plotters draws the geometry, the bitmap font the text).
 
-use super::canvas::{Canvas, GLYPH_HEIGHT, Rgb, text_width};
+use super::canvas::{Canvas, GLYPH_HEIGHT, INK, TICK_LENGTH, text_width};
 use crate::error::{HostError, Result};
 use crate::io;
 use plotters::coord::Shift;
@@ -13,13 +13,11 @@ const PLOT_WIDTH: usize = 800;
 const PLOT_HEIGHT: usize = 480;
 /// Text is drawn at 2x (10x14-px glyphs): legible in a PNG viewer without zooming.
 const PLOT_TEXT_SCALE: usize = 2;
-const TICK_LENGTH: usize = 6;
 const LEGEND_SWATCH: usize = 24;
 const LEGEND_ROW: usize = 24;
 /// Series with at most this many points also get a dot at each point, so a sweep over a few
 /// settings (noise levels, image counts) shows where the measurements are.
 const MARKER_LIMIT: usize = 30;
-const INK: Rgb = [0, 0, 0];
 const GRID: RGBColor = RGBColor(225, 225, 225);
 /// Tableau 10: distinct for most colour-vision deficiencies, and on a white background.
 const PALETTE: [RGBColor; 10] = [

@@ -1,11 +1,10 @@
 //! Side-by-side comparison strips of captioned tiles.
 
-use super::canvas::{Canvas, GLYPH_ADVANCE, GLYPH_HEIGHT, Rgb, text_width};
+use super::canvas::{Canvas, GLYPH_ADVANCE, GLYPH_HEIGHT, INK, Rgb, text_width};
 
 /// Pixels between tiles in [`side_by_side`].
 const TILE_GAP: usize = 2;
 const STRIP_BACKGROUND: Rgb = [255, 255, 255];
-const CAPTION_INK: Rgb = [0, 0, 0];
 /// Captions wrap onto at most this many lines before their scale is reduced.
 const MAX_CAPTION_LINES: usize = 2;
 
@@ -54,7 +53,7 @@ pub fn side_by_side(tiles: &[(&str, &[u8])], width: u32, height: u32) -> (u32, u
         for (line_index, line) in caption.iter().enumerate() {
             let x = left + tile_width.saturating_sub(text_width(line, scale)) / 2;
             let y = padding + line_index * line_pitch;
-            canvas.text(x, y, line, scale, CAPTION_INK);
+            canvas.text(x, y, line, scale, INK);
         }
     }
     (strip_width as u32, strip_height as u32, pixels)
