@@ -264,7 +264,7 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
 
     // Images, decoded for a 16 x 12 camera.
     let sensor = SpeedCamera::parse(&camera_path, CAMERA).unwrap();
-    let mut camera = sim::output_camera(&sensor, 16, false);
+    let mut camera = sim::output_camera(&sensor, 16, 16, false);
     camera.height = 12;
     let decoder = FrameDecoder::new(camera, Some(8));
     let pose = Pose::from_world_to_camera(Quat::IDENTITY, Vec3::new(0.0, 0.0, 5.0)).unwrap();

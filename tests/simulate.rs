@@ -37,7 +37,7 @@ impl Drop for TempDir {
 fn preset(name: &str, frames: u32, size: u16) -> Scene {
     let mut scene = Scene::load(name).unwrap();
     scene.spec.frames = frames;
-    scene.spec.size = size;
+    scene.spec.set_width(size);
     scene
 }
 
@@ -199,25 +199,46 @@ fn landmarks_projected_with_the_true_pose_land_on_the_mask() {
     assert_eq!(landmarks.len(), 11);
     let dir = TempDir::new("landmarks");
     // The third case renders through the SPEED+ lens distortion (mild near the centre); the
-    // loader undistorts images and masks back to the pinhole camera used for projecting.
-    for (name, distortion) in [("synthetic", false), ("sunlamp", false), ("sunlamp", true)] {
+    // loader undistorts images and masks back to the pinhole camera used for projecting. The
+    // fourth renders 128 x 80 px frames (inspection's aspect).
+    for (name, distortion) in [
+        ("synthetic", false),
+        ("sunlamp", false),
+        ("sunlamp", true),
+        ("inspection", false),
+    ] {
         let out = dir.0.join(format!("{name}-{distortion}"));
         let mut scene = preset(name, 10, 128);
         scene.spec.camera.distortion = distortion;
         simulate(&scene, &out);
         let set = load(&out);
         assert_eq!(set.camera.has_distortion(), distortion);
+        let expected_height = if name == "inspection" { 80 } else { 128 };
+        assert_eq!(
+            (set.camera.width, set.camera.height),
+            (128, expected_height),
+            "{name}"
+        );
         let truth = set.truth.unwrap();
         for (frame, exact) in set.dataset.frames.iter().zip(&truth.frames) {
             let label = exact.label();
             let mask = frame.mask.as_ref().unwrap();
             let camera = frame.camera;
+            let mut in_frame = 0;
             for (k, landmark) in landmarks.iter().enumerate() {
                 let p = label.rotation() * *landmark + label.translation();
                 let (u, v) = (
                     camera.fx * p.x / p.z + camera.cx,
                     camera.fy * p.y / p.z + camera.cy,
                 );
+                // A close target may not fit a wide image's height: a landmark cut off by the
+                // border has no mask to land on.
+                if !(0.0..camera.width as f32).contains(&u)
+                    || !(0.0..camera.height as f32).contains(&v)
+                {
+                    continue;
+                }
+                in_frame += 1;
                 let (i, j) = (u.floor() as i64, v.floor() as i64);
                 // Within one pixel of the mask (a corner's pixel may be less than half covered).
                 let on_mask = (-1..=1).any(|dj| {
@@ -234,6 +255,11 @@ fn landmarks_projected_with_the_true_pose_land_on_the_mask() {
                     frame.name
                 );
             }
+            assert!(
+                in_frame > 0,
+                "{name} {}: no landmark in the image",
+                frame.name
+            );
         }
     }
 }
@@ -391,7 +417,7 @@ fn bad_scene_files_name_the_file_and_the_field() {
     }
     let base = std::fs::read_to_string(common::root().join("scenes/synthetic.toml")).unwrap();
     let dir = TempDir::new("bad");
-    let cases: [(&str, String, &str); 6] = [
+    let cases: [(&str, String, &str); 7] = [
         (
             "unknown_effect",
             format!("{base}\n[effects.glare]\n"),
@@ -408,6 +434,11 @@ fn bad_scene_files_name_the_file_and_the_field() {
                 "",
             ),
             "target.path",
+        ),
+        (
+            "tiny_height",
+            base.replace("size = 256", "size = 256\nheight = 4"),
+            "height",
         ),
         (
             "negative_frames",

@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct AblateArgs {
-    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp) or a scene file.
+    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp, inspection) or a scene file.
     #[arg(long, default_value = "lightbox")]
     pub scene: String,
     /// Use this dataset (SPEED+/SHIRT/simulator, NeRF-synthetic or nerfstudio) instead of simulating one.
@@ -107,7 +107,7 @@ pub fn simulated(
 ) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let mut scene = Scene::load(scene)?;
     scene.spec.frames = frames;
-    scene.spec.size = size;
+    scene.spec.set_width(size);
     if let Some(noise) = noise {
         scene.spec.effects.label_noise =
             (noise.rotation_deg > 0.0 || noise.translation_m > 0.0).then_some(noise);

@@ -46,7 +46,7 @@ pub fn run(args: &SimulateArgs) -> Result<(), Box<dyn std::error::Error>> {
         scene.spec.frames = frames;
     }
     if let Some(size) = args.size {
-        scene.spec.size = size;
+        scene.spec.set_width(size);
     }
     if let Some(seed) = args.seed {
         scene.spec.seed = seed;
@@ -71,7 +71,7 @@ pub fn run(args: &SimulateArgs) -> Result<(), Box<dyn std::error::Error>> {
         spec.name,
         spec.frames,
         spec.size,
-        spec.size,
+        spec.height(),
         args.out.display(),
         report.wall_time.as_secs_f64(),
         set.dataset.frames.len(),

@@ -152,7 +152,7 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
     if let Some(name) = &args.scene {
         let mut scene = Scene::load(name)?;
         scene.spec.frames = args.frames;
-        scene.spec.size = args.size;
+        scene.spec.set_width(args.size);
         let mut source = SimulatorSource::new(&scene)?;
         stream_from(args, &mut source)
     } else if let Some(dir) = &args.data {

@@ -146,7 +146,8 @@ impl StageTimes {
 #[derive(Clone, Debug)]
 pub struct SimulationReport {
     pub frames: u32,
-    pub size: u16,
+    pub width: u16,
+    pub height: u16,
     pub triangles: usize,
     pub effects: Effects,
     pub times: StageTimes,
@@ -187,8 +188,8 @@ impl SimulationReport {
             table,
             "{} frames of {}x{} px, {} triangles: {:.2} s wall, {:.2} s summed over threads",
             self.frames,
-            self.size,
-            self.size,
+            self.width,
+            self.height,
             self.triangles,
             self.wall_time.as_secs_f64(),
             cpu.as_secs_f64()
@@ -197,21 +198,25 @@ impl SimulationReport {
     }
 }
 
-/// The SPEED+ camera scaled to a `size` x `size` output: the focal length scales with the
+/// The SPEED+ camera scaled to a `width` x `height` output: the focal length scales with the
 /// width (the SPEED+ horizontal field of view is kept) and the principal point keeps its offset
 /// from the image centre. Distortion coefficients (on normalised coordinates) carry over when
 /// the scene renders with distortion.
-pub fn output_camera(sensor: &SpeedCamera, size: u16, distortion: bool) -> SpeedCamera {
-    let scale = size as f64 / sensor.width as f64;
-    let half = size as f64 / 2.0;
+pub fn output_camera(
+    sensor: &SpeedCamera,
+    width: u16,
+    height: u16,
+    distortion: bool,
+) -> SpeedCamera {
+    let scale = f64::from(width) / sensor.width as f64;
     let k = &sensor.camera_matrix;
     let (cx, cy) = (
-        half + (k[0][2] - sensor.width as f64 / 2.0) * scale,
-        half + (k[1][2] - sensor.height as f64 / 2.0) * scale,
+        f64::from(width) / 2.0 + (k[0][2] - sensor.width as f64 / 2.0) * scale,
+        f64::from(height) / 2.0 + (k[1][2] - sensor.height as f64 / 2.0) * scale,
     );
     SpeedCamera {
-        width: size as u32,
-        height: size as u32,
+        width: u32::from(width),
+        height: u32::from(height),
         pixel_pitch: sensor.pixel_pitch.map(|pitch| pitch.map(|p| p / scale)),
         camera_matrix: [
             [k[0][0] * scale, 0.0, cx],
@@ -237,7 +242,7 @@ pub const LOADED_BYTES_PER_PIXEL: u64 = 4;
 /// thread of the pool [`simulate`] runs on) and, when `load_back`, the whole dataset read back
 /// to check it.
 pub fn working_memory(spec: &SceneSpec, load_back: bool) -> Vec<crate::memory::Part> {
-    let pixels = u64::from(spec.size) * u64::from(spec.size);
+    let pixels = u64::from(spec.size) * u64::from(spec.height());
     let frames_at_once = (rayon::current_num_threads() as u64).min(u64::from(spec.frames));
     let mut parts = vec![(
         "frames being rendered",
@@ -286,7 +291,7 @@ impl<'s> FrameSimulator<'s> {
         let target = Target::build(scene)?;
         let intrinsics = scene.resolve_data("camera.intrinsics", &spec.camera.intrinsics)?;
         let sensor = SpeedCamera::parse(&intrinsics.origin(), &intrinsics.text()?)?;
-        let camera_file = output_camera(&sensor, spec.size, spec.camera.distortion);
+        let camera_file = output_camera(&sensor, spec.size, spec.height(), spec.camera.distortion);
         Ok(FrameSimulator {
             scene,
             target,
@@ -379,18 +384,18 @@ pub fn simulate(
                 mut times,
             } = simulator.render(index)?;
             times.time(Stage::Write, || {
-                let size = spec.size as u32;
+                let (width, height) = (u32::from(spec.size), u32::from(spec.height()));
                 write_png(
                     &staging.join("images").join(&filename),
-                    size,
-                    size,
+                    width,
+                    height,
                     image.channels,
                     &image.pixels,
                 )?;
                 write_png(
                     &staging.join("masks").join(&filename),
-                    size,
-                    size,
+                    width,
+                    height,
                     1,
                     &image.mask,
                 )
@@ -429,7 +434,8 @@ pub fn simulate(
 
     Ok(SimulationReport {
         frames: spec.frames,
-        size: spec.size,
+        width: spec.size,
+        height: spec.height(),
         triangles: simulator.triangle_count(),
         effects: spec.effects.clone(),
         times,

@@ -10,10 +10,14 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// The presets shipped in `scenes/`, embedded so that they work from any folder.
-const PRESETS: [(&str, &str); 3] = [
+const PRESETS: [(&str, &str); 4] = [
     ("synthetic", include_str!("../../../scenes/synthetic.toml")),
     ("lightbox", include_str!("../../../scenes/lightbox.toml")),
     ("sunlamp", include_str!("../../../scenes/sunlamp.toml")),
+    (
+        "inspection",
+        include_str!("../../../scenes/inspection.toml"),
+    ),
 ];
 
 /// Data files built into the binary (copies of the SLAB SPEED+ devkit values, see
@@ -71,8 +75,12 @@ pub struct SceneSpec {
     pub name: String,
     pub frames: u32,
     pub seed: u64,
-    /// Output images are `size` x `size` pixels.
+    /// Output images are `size` pixels wide ...
     pub size: u16,
+    /// ... and `height` pixels tall (default: `size`, square). The camera's focal length
+    /// scales with the width; the height widens or narrows the vertical field of view.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub height: Option<u16>,
     /// Each pixel averages `antialias` x `antialias` rays.
     #[serde(default = "one")]
     pub antialias: u32,
@@ -357,7 +365,7 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// A preset name (`synthetic`, `lightbox`, `sunlamp`) or the path of a scene file. A
+    /// A preset name (`synthetic`, `lightbox`, `sunlamp`, `inspection`) or the path of a scene file. A
     /// preset's data are the built-in copies; a scene file's data paths are tried relative to
     /// its folder, then the current folder, then against the built-in names.
     pub fn load(name_or_path: &str) -> Result<Scene> {
@@ -526,10 +534,27 @@ fn non_zero(v: &[f32]) -> bool {
 }
 
 impl SceneSpec {
+    /// Output image height in pixels.
+    pub fn height(&self) -> u16 {
+        self.height.unwrap_or(self.size)
+    }
+
+    /// Output images `width` pixels wide, the height scaled along (rounded, at least 8 px),
+    /// so the scene keeps its aspect ratio at any `--size`.
+    pub fn set_width(&mut self, width: u16) {
+        if let Some(height) = self.height {
+            let scaled = (u32::from(height) * u32::from(width) + u32::from(self.size) / 2)
+                / u32::from(self.size.max(1));
+            self.height = Some(scaled.clamp(8, u32::from(u16::MAX)) as u16);
+        }
+        self.size = width;
+    }
+
     /// Ranges and consistency the types alone do not express.
     fn check(&self) -> std::result::Result<(), Problem> {
         ensure(self.frames >= 1, "frames", "must be at least 1")?;
         ensure(self.size >= 8, "size", "must be at least 8 pixels")?;
+        ensure(self.height() >= 8, "height", "must be at least 8 pixels")?;
         ensure(
             (1..=4).contains(&self.antialias),
             "antialias",
@@ -712,6 +737,25 @@ impl Effects {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_new_width_keeps_the_aspect_ratio_and_square_scenes_stay_square() {
+        let mut inspection = Scene::load("inspection").unwrap().spec;
+        assert_eq!((inspection.size, inspection.height()), (240, 150));
+        inspection.set_width(48);
+        assert_eq!((inspection.size, inspection.height()), (48, 30));
+        inspection.set_width(1000);
+        assert_eq!((inspection.size, inspection.height()), (1000, 625));
+        // Never below the smallest size a scene may have.
+        inspection.set_width(8);
+        assert_eq!((inspection.size, inspection.height()), (8, 8));
+        let mut square = Scene::load("lightbox").unwrap().spec;
+        square.set_width(100);
+        assert_eq!(
+            (square.size, square.height(), square.height),
+            (100, 100, None)
+        );
+    }
 
     #[test]
     fn presets_use_the_built_in_data_and_scene_files_prefer_their_own() {

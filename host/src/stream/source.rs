@@ -285,10 +285,11 @@ impl<'s> SimulatorSource<'s> {
         let info = SourceInfo {
             name: format!("simulated {}", scene.origin.display()),
             identity: format!(
-                "scene {} ({} frames, {} px, seed {})",
+                "scene {} ({} frames, {}x{} px, seed {})",
                 canonical(&scene.origin).display(),
                 spec.frames,
                 spec.size,
+                spec.height(),
                 spec.seed
             ),
             scene_box: Some(simulator.scene_box()),
