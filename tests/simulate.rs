@@ -255,10 +255,14 @@ fn landmarks_projected_with_the_true_pose_land_on_the_mask() {
                     frame.name
                 );
             }
+            // Only inspection's 128 x 80 frames are too short for a close target; the square
+            // presets keep every landmark in the image.
+            let all_in_frame = in_frame == landmarks.len();
             assert!(
-                in_frame > 0,
-                "{name} {}: no landmark in the image",
-                frame.name
+                all_in_frame || (name == "inspection" && in_frame > 0),
+                "{name} {}: {in_frame} of {} landmarks in the image",
+                frame.name,
+                landmarks.len()
             );
         }
     }
