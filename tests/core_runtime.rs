@@ -123,7 +123,10 @@ fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
 /// (f32 master copy, appearance embeddings, pose correction about the target, random
 /// backgrounds, foreground sampling). Re-recorded for checkpoint format 3 (issue 13): only the
 /// header's version changed (with the version set back to 2 the old hashes still matched, as
-/// lego's box has length unit 1).
+/// lego's box has length unit 1). Re-recorded for format 4 (issue 14): with the version set
+/// back to 3 and the config's two new fields (`plane_tv_weight`, `coarse_to_fine_steps`, both
+/// 0) cut out, the bytes hash to the format-3 records (0xe701_c3ed_4afd_6a3a and
+/// 0x285f_41bd_5683_c514).
 #[test]
 fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     let mut plain = tiny_config();
@@ -138,8 +141,8 @@ fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     method.random_background = true;
     method.foreground_fraction = 0.5;
     for (name, config, recorded) in [
-        ("tiny", plain, 0xe701_c3ed_4afd_6a3a),
-        ("tiny + method", method, 0x285f_41bd_5683_c514),
+        ("tiny", plain, 0xe8af_a024_b488_4b0e),
+        ("tiny + method", method, 0xd9b3_4680_61f0_8009),
     ] {
         let Some(bytes) = checkpoint_of_config(config, 2) else {
             return;
@@ -439,7 +442,7 @@ fn arena_size_and_alignment_are_handled() {
 fn bad_configs_name_the_field() {
     let base = tiny_config();
     type Breakage = (&'static str, fn(&mut Config));
-    let cases: [Breakage; 10] = [
+    let cases: [Breakage; 12] = [
         ("scales", |c| c.scales = 0),
         ("resolutions", |c| c.resolutions[1] = 1),
         ("features", |c| c.features = 12),
@@ -449,6 +452,10 @@ fn bad_configs_name_the_field() {
         ("chunks", |c| c.chunks = 0),
         ("learning_rate", |c| c.learning_rate = f32::INFINITY),
         ("pose_lr_factor", |c| c.pose_lr_factor = 0.5),
+        ("plane_tv_weight", |c| c.plane_tv_weight = f32::NAN),
+        ("coarse_to_fine_steps", |c| {
+            c.coarse_to_fine_steps = c.steps + 1
+        }),
         ("max_samples_per_ray", |c| c.max_samples_per_ray = u16::MAX),
     ];
     for (field, break_it) in cases {

@@ -667,6 +667,26 @@ fn out_of_range_config_file_values_are_refused_naming_the_file_and_field() {
         ("adam_eps = 1e-15", "adam_eps = nan", "adam_eps"),
         ("adam_eps = 1e-15", "adam_eps = -1.0", "adam_eps"),
         (
+            "plane_tv_weight = 0.0",
+            "plane_tv_weight = inf",
+            "plane_tv_weight",
+        ),
+        (
+            "plane_tv_weight = 0.0",
+            "plane_tv_weight = -0.0001",
+            "plane_tv_weight",
+        ),
+        (
+            "plane_tv_weight = 0.0",
+            "plane_tv_weight = 1e30",
+            "plane_tv_weight",
+        ),
+        (
+            "coarse_to_fine_steps = 0",
+            "coarse_to_fine_steps = 99999999999",
+            "coarse_to_fine_steps",
+        ),
+        (
             "learning_rate = 0.01",
             "learning_rate = inf",
             "learning_rate",

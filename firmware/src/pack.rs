@@ -53,11 +53,13 @@ pub const CONFIG: Config = Config {
     adam_beta1: 0.9,
     adam_beta2: 0.99,
     adam_eps: 1e-15,
+    plane_tv_weight: 0.0,
     texel_update: TexelUpdate::StochasticRounding,
     pose_lr_factor: 0.01,
     pose_correction: false,
     pose_pivot: PosePivot::Camera,
     pose_warmup_steps: 0,
+    coarse_to_fine_steps: 0,
     seed: 0,
 };
 

@@ -27,8 +27,10 @@ use std::path::{Path, PathBuf};
 pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// The payload encoding this build writes and the only one it reads. Version 3: the density
 /// and the learned pose translations are in units of the scene box (`Config::length_unit`),
-/// so a version 2 model of a box other than [-1.5, 1.5]³ would render differently.
-pub const FORMAT_VERSION: u32 = 3;
+/// so a version 2 model of a box other than [-1.5, 1.5]³ would render differently. Version 4:
+/// the config gained `plane_tv_weight` and `coarse_to_fine_steps` (configs are encoded by
+/// field position).
+pub const FORMAT_VERSION: u32 = 4;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 

@@ -175,6 +175,11 @@ pub struct Config {
     pub adam_beta2: f32,
     /// Adam's denominator guard, added to the root of the second moment.
     pub adam_eps: f32,
+    /// Weight of K-Planes' total-variation regulariser on the planes (their
+    /// `plane_tv_weight`, 1e-4 to 2e-4 there; 0 turns it off): the mean squared difference
+    /// of neighbouring texels, per plane, summed over planes and scales. Applied to the
+    /// texels a step touches (the others are left as they are, as Adam leaves them).
+    pub plane_tv_weight: f32,
     /// How Adam updates reach the f16 plane texels.
     pub texel_update: TexelUpdate,
     /// Pose corrections learn at pose_lr_factor * the field's rate (the paper's beta <= 0.01).
@@ -186,6 +191,13 @@ pub struct Config {
     /// Pose corrections stay at zero for this many steps, until the field has formed (early
     /// gradients of a blurry field push poses anywhere).
     pub pose_warmup_steps: u32,
+    /// BARF's coarse-to-fine schedule over the plane scales (0 turns it off): the first scale
+    /// is on from the start and each finer one fades in, one after another, over this many
+    /// steps, so early pose gradients see a smooth field. Scale `s >= 1` is weighted by
+    /// `(1 - cos(pi * clamp(a - (s - 1), 0, 1))) / 2` with `a = (scales - 1) * step /
+    /// coarse_to_fine_steps`; every pass (training, occupancy, rendering) uses the weights
+    /// of the trainer's current step.
+    pub coarse_to_fine_steps: u32,
     /// Seed of every random draw (initialisation, ray picks, jitter, rounding, admission).
     pub seed: u64,
 }
@@ -195,6 +207,21 @@ impl Config {
     /// their warm-up).
     pub const fn pose_learns_at(&self, step: u32) -> bool {
         self.pose_correction && step >= self.pose_warmup_steps
+    }
+
+    /// Weight of each plane scale's features at training step `step` (all 1 without the
+    /// coarse-to-fine schedule or after it; see `coarse_to_fine_steps`).
+    pub fn scale_weights_at(&self, step: u32) -> [f32; MAX_SCALES] {
+        let mut weights = [1.0f32; MAX_SCALES];
+        if self.coarse_to_fine_steps == 0 || step >= self.coarse_to_fine_steps {
+            return weights;
+        }
+        let a = (self.scales as f32 - 1.0) * step as f32 / self.coarse_to_fine_steps as f32;
+        for (s, w) in weights.iter_mut().enumerate().skip(1) {
+            let x = (a - (s as f32 - 1.0)).clamp(0.0, 1.0);
+            *w = 0.5 * (1.0 - libm::cosf(core::f32::consts::PI * x));
+        }
+        weights
     }
 
     /// The point pose corrections turn cameras about, if not their own centres.
@@ -242,11 +269,13 @@ impl Config {
         adam_beta1: 0.9,
         adam_beta2: 0.99,
         adam_eps: 1e-15,
+        plane_tv_weight: 0.0,
         texel_update: TexelUpdate::MasterCopy,
         pose_lr_factor: 0.01,
         pose_correction: false,
         pose_pivot: PosePivot::Camera,
         pose_warmup_steps: 0,
+        coarse_to_fine_steps: 0,
         seed: 0,
     };
 
@@ -441,8 +470,14 @@ impl Config {
         if !(self.adam_eps.is_finite() && self.adam_eps > 0.0) {
             return bad("adam_eps");
         }
+        if !(self.plane_tv_weight.is_finite() && (0.0..=1.0).contains(&self.plane_tv_weight)) {
+            return bad("plane_tv_weight");
+        }
         if !(self.pose_lr_factor.is_finite() && (0.0..=0.01).contains(&self.pose_lr_factor)) {
             return bad("pose_lr_factor");
+        }
+        if self.coarse_to_fine_steps > self.steps {
+            return bad("coarse_to_fine_steps");
         }
         Ok(())
     }

@@ -267,6 +267,83 @@ fn planes_backward_n<const F: usize>(
     spatial
 }
 
+/// Adds to `grad` (one texel's `features` values) the gradient with respect to texel
+/// `texel` of K-Planes' plane total variation times `weight`: per plane of side `r`, twice
+/// the mean squared difference of vertically and of horizontally neighbouring values (each
+/// mean over `features * r * (r - 1)` pairs), summed over every plane of every scale. A
+/// texel index past the planes adds nothing.
+pub fn plane_tv_gradient(
+    planes: &[f16],
+    geo: &PlaneGeometry,
+    weight: f32,
+    texel: usize,
+    grad: &mut [f32],
+) {
+    let f = geo.features;
+    for s in 0..geo.scales {
+        let r = geo.resolution[s];
+        let first = geo.first_texel[s];
+        if texel < first || texel >= first + 3 * r * r {
+            continue;
+        }
+        let local = (texel - first) % (r * r);
+        let (x, y) = (local % r, local / r);
+        // d/dt of 2 (t - n)² / pairs, for each neighbour n.
+        let coefficient = 4.0 * weight / (f * r * (r - 1)) as f32;
+        let neighbours = [
+            (x > 0).then(|| texel - 1),
+            (x + 1 < r).then(|| texel + 1),
+            (y > 0).then(|| texel - r),
+            (y + 1 < r).then(|| texel + r),
+        ];
+        let (Some(own), Some(grad)) = (planes.get(texel * f..(texel + 1) * f), grad.get_mut(..f))
+        else {
+            return;
+        };
+        for n in neighbours.into_iter().flatten() {
+            let Some(other) = planes.get(n * f..(n + 1) * f) else {
+                continue;
+            };
+            for ((g, a), b) in grad.iter_mut().zip(own).zip(other) {
+                *g += coefficient * (a.to_f32() - b.to_f32());
+            }
+        }
+        return;
+    }
+}
+
+/// K-Planes' plane total variation (unweighted) of every plane of every scale, in f64: the
+/// loss whose gradient `plane_tv_gradient` computes.
+#[cfg(test)]
+pub(crate) fn plane_tv(planes: &[f16], geo: &PlaneGeometry) -> f64 {
+    let f = geo.features;
+    let mut total = 0.0f64;
+    for s in 0..geo.scales {
+        let r = geo.resolution[s];
+        let pairs = (f * r * (r - 1)) as f64;
+        for p in 0..3 {
+            let at = |x: usize, y: usize, k: usize| {
+                planes[(geo.first_texel[s] + p * r * r + y * r + x) * f + k].to_f64()
+            };
+            let (mut vertical, mut horizontal) = (0.0, 0.0);
+            for y in 0..r {
+                for x in 0..r {
+                    for k in 0..f {
+                        if x + 1 < r {
+                            horizontal += (at(x + 1, y, k) - at(x, y, k)).powi(2);
+                        }
+                        if y + 1 < r {
+                            vertical += (at(x, y + 1, k) - at(x, y, k)).powi(2);
+                        }
+                    }
+                }
+            }
+            total += 2.0 * (vertical / pairs + horizontal / pairs);
+        }
+    }
+    total
+}
+
 const SH_C0: f32 = 0.282_094_8;
 const SH_C1: f32 = 0.488_602_5;
 const SH_C2: [f32; 5] = [
@@ -532,6 +609,35 @@ mod tests {
             (analytic - numeric).abs() / scale < tol,
             "{what}: analytic {analytic} vs numeric {numeric}"
         );
+    }
+
+    #[test]
+    fn plane_tv_gradient_matches_finite_differences() {
+        let (geo, texels) = small_geometry();
+        // Values on a 1/64 grid, so the perturbed values below are exact in f16.
+        let planes = random_planes(&geo, texels, 3)
+            .map(|v| f16::from_f32((v.to_f32() * 64.0).round() / 64.0));
+        let f = geo.features;
+        let weight = 0.5f32;
+        let loss = |planes: &[f16]| weight as f64 * plane_tv(planes, &geo);
+        for t in 0..texels {
+            let mut grad = [0.0f32; 8];
+            plane_tv_gradient(&planes, &geo, weight, t, &mut grad);
+            for k in 0..f {
+                let i = t * f + k;
+                let h = 0.0625f32;
+                let mut plus = planes;
+                let mut minus = planes;
+                plus[i] = f16::from_f32(planes[i].to_f32() + h);
+                minus[i] = f16::from_f32(planes[i].to_f32() - h);
+                let numeric = ((loss(&plus) - loss(&minus)) / (2.0 * h as f64)) as f32;
+                assert_close(grad[k], numeric, 1e-4, "plane TV");
+            }
+        }
+        // Past the planes: nothing added.
+        let mut grad = [0.0f32; 8];
+        plane_tv_gradient(&planes, &geo, weight, texels, &mut grad);
+        assert_eq!(grad, [0.0; 8]);
     }
 
     #[test]

@@ -226,9 +226,10 @@ impl Chunk<'_> {
             let mut d_feat = [0.0f32; 4 * 64];
             let pose = shared.pose_gradients;
             let extent = shared.aabb.max - shared.aabb.min;
+            let per_scale = c.features as usize;
             for l in 0..lanes {
                 for k in 0..features {
-                    d_feat[k] = grad.feats[k][l];
+                    d_feat[k] = grad.feats[k][l] * shared.scale_weights[k / per_scale];
                 }
                 let x = Vec3::from_array(self.positions[base + l]);
                 let u = shared.aabb.normalise(x);

@@ -387,8 +387,9 @@ fn load_features(
     {
         let u = shared.aabb.normalise(Vec3::from_array(*p));
         field::planes_forward(shared.planes, shared.geometry, u, &mut out[..n], values);
+        let f = shared.geometry.features;
         for k in 0..n {
-            feats[k][l] = out[k];
+            feats[k][l] = out[k] * shared.scale_weights[k / f];
         }
     }
 }

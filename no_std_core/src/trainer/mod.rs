@@ -15,7 +15,7 @@
 use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
-    MAX_CHUNKS, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats,
+    MAX_CHUNKS, MAX_SCALES, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats,
     forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
@@ -164,6 +164,8 @@ struct Shared<'s> {
     optical_step: f32,
     length_unit: f32,
     planes: &'s [f16],
+    /// Each scale's weight at the trainer's step (the coarse-to-fine schedule).
+    scale_weights: [f32; MAX_SCALES],
     mlp: &'s [f32],
     occupancy: OccupancyView<'s>,
     rays: &'s [BatchRay],
@@ -263,6 +265,7 @@ impl<'a> Trainer<'a> {
             optical_step: self.optical_step,
             length_unit: self.length_unit,
             planes: self.planes,
+            scale_weights: self.config.scale_weights_at(self.state.step),
             mlp: self.mlp,
             occupancy: OccupancyView {
                 bits: self.occupancy_bits,

@@ -85,6 +85,7 @@ impl<'a> Trainer<'a> {
             }
             *union = bits;
         }
+        let tv_weight = self.config.plane_tv_weight;
         for texel in set_bits(self.touched_union) {
             let range = texel * f..(texel + 1) * f;
             for other in rest.iter_mut() {
@@ -95,6 +96,15 @@ impl<'a> Trainer<'a> {
                     *a += *b;
                     *b = 0.0;
                 }
+            }
+            if tv_weight > 0.0 {
+                field::plane_tv_gradient(
+                    self.planes,
+                    &self.geometry,
+                    tv_weight,
+                    texel,
+                    &mut first.plane_grads[range.clone()],
+                );
             }
             finite &= first.plane_grads[range].iter().all(|g| g.is_finite());
         }

@@ -56,8 +56,51 @@ fn embedding_and_pose_correction_gradients_match_finite_differences() {
     for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
         let mut config = small_config();
         config.pose_pivot = pivot;
-        check_frame_gradients(config);
+        check_frame_gradients(config, 0);
     }
+    // Halfway into the coarse-to-fine schedule the finer scale is weighted by 0.5.
+    let mut config = small_config();
+    config.pose_pivot = PosePivot::TargetOrigin;
+    config.coarse_to_fine_steps = 10;
+    assert_eq!(config.scale_weights_at(5)[..2], [1.0, 0.5]);
+    check_frame_gradients(config, 5);
+}
+
+#[test]
+fn coarse_to_fine_hides_the_finer_scales_at_first_and_uses_all_after_its_steps() {
+    let mut config = small_config();
+    config.coarse_to_fine_steps = 100;
+    config.steps = 200;
+    let weights = |step| config.scale_weights_at(step);
+    assert_eq!(weights(0), [1.0, 0.0, 0.0, 0.0]);
+    assert_eq!(weights(100), [1.0; 4]);
+    assert!(weights(30)[1] > weights(20)[1] && weights(30)[1] < 1.0);
+    let mut arena = [0u8; 1 << 20];
+    let arena = &mut arena[..MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, arena).unwrap();
+    put_test_frame(&mut trainer);
+    let f = config.features as usize;
+    let fine = trainer.geometry.first_texel[1] * f..trainer.planes.len();
+    let (loss, _) = loss_and_frame_gradients(&mut trainer);
+    // At step 0 the finer scale neither changes the loss nor gets a gradient.
+    for v in trainer.planes[fine.clone()].iter_mut() {
+        *v = f16::from_f32(v.to_f32() * 0.5);
+    }
+    trainer.forward_backward(&Sequential).unwrap();
+    let same: f64 = trainer
+        .chunks
+        .iter()
+        .map(|c| c.report.squared_error as f64)
+        .sum();
+    assert_eq!(same / (3.0 * config.rays_per_batch as f64), loss);
+    for chunk in trainer.chunks.iter() {
+        assert!(chunk.plane_grads[fine.clone()].iter().all(|&g| g == 0.0));
+        assert!(chunk.plane_grads[..fine.start].iter().any(|&g| g != 0.0));
+    }
+    // Past the schedule it does.
+    trainer.state.step = 100;
+    let (after, _) = loss_and_frame_gradients(&mut trainer);
+    assert_ne!(after, loss);
 }
 
 #[test]
@@ -164,13 +207,14 @@ pub(super) fn put_test_frame(trainer: &mut Trainer<'_>) {
     trainer.set_frame(0, camera, pose, &pixels, None).unwrap();
 }
 
-fn check_frame_gradients(config: Config) {
+fn check_frame_gradients(config: Config, step: u32) {
     let plan = MemoryPlan::new(&config);
     let mut arena = [0u8; 1 << 20];
     let Some(arena) = arena.get_mut(..plan.total) else {
         panic!("test arena too small: {}", plan.total)
     };
     let mut trainer = Trainer::new(config, arena).unwrap();
+    trainer.state.step = step;
     put_test_frame(&mut trainer);
     let start = [0.3, -0.2, 0.1, 0.25, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03];
     trainer.frame_params[..10].copy_from_slice(&start);
@@ -192,6 +236,37 @@ fn check_frame_gradients(config: Config) {
             analytic[i]
         );
     }
+}
+
+#[test]
+fn plane_tv_smooths_the_planes_and_only_the_texels_a_step_touches() {
+    let mut rough = [0.0f64; 2];
+    let mut untouched_kept = [false; 2];
+    for (run, weight) in [0.0, 1.0].into_iter().enumerate() {
+        let mut config = small_config();
+        config.plane_tv_weight = weight;
+        config.warmup_steps = 0;
+        config.learning_rate = 0.05;
+        let mut arena = [0u8; 1 << 20];
+        let arena = &mut arena[..MemoryPlan::new(&config).total];
+        let mut trainer = Trainer::new(config, arena).unwrap();
+        put_test_frame(&mut trainer);
+        let start: heapless::Vec<f16, 8192> = trainer.planes.iter().copied().collect();
+        for _ in 0..20 {
+            trainer.step(&Sequential).unwrap();
+        }
+        rough[run] = field::plane_tv(trainer.planes, &trainer.geometry);
+        // The camera inside the box never reaches the far corner's texels.
+        let changed = trainer
+            .planes
+            .iter()
+            .zip(&start)
+            .filter(|(a, b)| a != b)
+            .count();
+        untouched_kept[run] = changed > 0 && changed < start.len();
+    }
+    assert!(rough[1] < 0.5 * rough[0], "{rough:?}");
+    assert_eq!(untouched_kept, [true; 2]);
 }
 
 #[test]
