@@ -5,6 +5,8 @@ use crate::Error;
 
 /// At most this many plane scales (K-Planes uses four).
 pub const MAX_SCALES: usize = 4;
+/// Widest hidden layer of the colour MLP (its per-ray terms live on the stack).
+pub const MAX_COLOUR_HIDDEN: usize = 256;
 /// Samples processed together through the MLPs (structure-of-arrays width).
 pub const LANES: usize = 64;
 /// At most this many chunks per batch.
@@ -376,7 +378,7 @@ impl Config {
         if !(1..=64).contains(&self.geo_features) {
             return bad("geo_features");
         }
-        if !(1..=256).contains(&self.colour_hidden) {
+        if !(1..=MAX_COLOUR_HIDDEN as u16).contains(&self.colour_hidden) {
             return bad("colour_hidden");
         }
         if !(1..=4).contains(&self.sh_bands) {
@@ -594,12 +596,13 @@ pub const fn widest_layer(c: &Config) -> usize {
     w.div_ceil(8) * 8
 }
 
-/// Floats of activation (or gradient) per lane in the MLP scratch.
+/// Floats of activation (or gradient) per lane in the MLP scratch. Of the colour MLP's
+/// inputs only the geometry features vary per sample; the rest go in once per ray.
 pub const fn activation_floats(c: &Config) -> usize {
     c.density_inputs()
         + c.density_hidden as usize
         + c.density_outputs()
-        + c.colour_inputs()
+        + c.geo_features as usize
         + 2 * c.colour_hidden as usize
         + RGB
 }

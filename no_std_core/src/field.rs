@@ -445,9 +445,18 @@ pub type Row = [f32; LANES];
 /// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes, one fused multiply-add per
 /// term in order of `k`. `x` has `inputs` rows and `y` has `outputs` rows.
 pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
+    for (yn, bn) in y.iter_mut().zip(b) {
+        *yn = [*bn; LANES];
+    }
+    layer_forward_onto(w, x, y);
+}
+
+/// `y[n] += sum_k w[k * outputs + n] * x[k]` for all lanes, fused, in order of `k`: a layer
+/// whose bias (and the terms of any inputs summed elsewhere) `y` already holds.
+pub fn layer_forward_onto(w: &[f32], x: &[Row], y: &mut [Row]) {
     let outputs = y.len();
     for (n, yn) in y.iter_mut().enumerate() {
-        let mut acc = [b[n]; LANES];
+        let mut acc = *yn;
         for (k, xk) in x.iter().enumerate() {
             fused::axpy(&mut acc, w[k * outputs + n], xk);
         }

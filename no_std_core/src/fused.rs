@@ -9,7 +9,7 @@
 //! on CPUs without separate add pipes (Intel's) is what bounds them.
 
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
-use core::arch::x86_64::{__m256, _mm256_fmadd_ps, _mm256_set1_ps};
+use core::arch::x86_64::{__m256, _mm256_fmadd_ps, _mm256_set1_ps, _mm256_setzero_ps};
 
 /// `acc[i] = s * x[i] + acc[i]` (rounded once) for `i < min(acc.len(), x.len())`.
 #[inline(always)]
@@ -85,6 +85,41 @@ fn portable_axpy(acc: &mut [f32], s: f32, x: &[f32]) {
     }
 }
 
+/// `sum_i a[i] * b[i]` over `i < min(a.len(), b.len())`, in one fixed order on every target:
+/// eight running sums (term `i` fused into sum `i % 8`), then added pairwise,
+/// `((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))`.
+#[inline(always)]
+pub fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let len = a.len().min(b.len());
+    let (a8, a_tail) = a[..len].as_chunks::<8>();
+    let (b8, b_tail) = b[..len].as_chunks::<8>();
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    #[allow(unsafe_code)] // The intrinsics are `unsafe` only for the CPU features they need.
+    // SAFETY: compiled only when AVX and FMA are enabled for the whole build; the values move
+    // in and out by `bytemuck::cast`, no pointers.
+    let mut sums: [f32; 8] = unsafe {
+        let mut acc = _mm256_setzero_ps();
+        for (av, bv) in a8.iter().zip(b8) {
+            acc = _mm256_fmadd_ps(bytemuck::cast(*av), bytemuck::cast(*bv), acc);
+        }
+        bytemuck::cast(acc)
+    };
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx")))]
+    let mut sums = {
+        let mut sums = [0.0f32; 8];
+        for (av, bv) in a8.iter().zip(b8) {
+            for i in 0..8 {
+                sums[i] = libm::fmaf(av[i], bv[i], sums[i]);
+            }
+        }
+        sums
+    };
+    for (i, (x, y)) in a_tail.iter().zip(b_tail).enumerate() {
+        sums[i] = libm::fmaf(*x, *y, sums[i]);
+    }
+    ((sums[0] + sums[1]) + (sums[2] + sums[3])) + ((sums[4] + sums[5]) + (sums[6] + sums[7]))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -142,5 +177,27 @@ mod tests {
         let mut acc = [-1.0f32; 9];
         axpy(&mut acc, 1.0 + e, &[1.0 - e; 9]);
         assert!(acc.iter().all(|&a| a == -e * e));
+    }
+
+    #[test]
+    fn the_vector_dot_gives_the_bits_of_the_portable_order() {
+        let mut rng = Rng::new(11);
+        for len in [0, 1, 7, 8, 9, 16, 63, 64, 67] {
+            for _ in 0..200 {
+                let a: [f32; 67] = core::array::from_fn(|_| awkward(&mut rng));
+                let b: [f32; 67] = core::array::from_fn(|_| awkward(&mut rng));
+                let mut sums = [0.0f32; 8];
+                for i in 0..len {
+                    sums[i % 8] = libm::fmaf(a[i], b[i], sums[i % 8]);
+                }
+                let expected = ((sums[0] + sums[1]) + (sums[2] + sums[3]))
+                    + ((sums[4] + sums[5]) + (sums[6] + sums[7]));
+                let got = dot(&a[..len], &b[..len]);
+                assert!(
+                    got.to_bits() == expected.to_bits() || (got.is_nan() && expected.is_nan()),
+                    "{len}: {got} != {expected}"
+                );
+            }
+        }
     }
 }

@@ -1,6 +1,6 @@
 //! A chunk's training pass: forward, loss and the hand-written backward pass.
 
-use super::chunk::{ChunkReport, density_forward, split_rows};
+use super::chunk::{ChunkReport, density_forward, embedding_of, ray_runs, split_rows};
 use super::*;
 
 impl Chunk<'_> {
@@ -168,35 +168,74 @@ impl Chunk<'_> {
                 self.lane_major,
             );
             field::relu_backward(act.colour1, grad.colour1);
-            backward_layer(
-                p,
-                g,
-                l1,
-                act.colour_in,
+            // The first layer: its geometry rows sample by sample, its ray term (view
+            // encoding and embedding, see `ray_term`) once per run of a ray's samples.
+            let hidden = l1.outputs;
+            let w1 = &p[l1.weights..l1.biases];
+            let (dw1, db1) = g[l1.weights..l1.biases + hidden].split_at_mut(l1.biases - l1.weights);
+            let geo_rows = sh_len * hidden..(sh_len + geo_len) * hidden;
+            field::layer_backward(
+                &w1[geo_rows.clone()],
+                act.colour_geo,
                 grad.colour1,
-                Some(grad.colour_in),
+                Some(grad.colour_geo),
+                &mut dw1[geo_rows],
+                db1,
                 self.lane_major,
             );
-            laps.lap(Stage::ColourBackward, &mut self.times);
             for gi in 0..geo_len {
-                grad.density_out[1 + gi] = grad.colour_in[sh_len + gi];
+                grad.density_out[1 + gi] = grad.colour_geo[gi];
             }
+            let pose = shared.pose_gradients && !shared.fit_embedding;
+            let mut sum = [0.0f32; MAX_COLOUR_HIDDEN];
+            let sum = &mut sum[..hidden];
+            for (start, end) in ray_runs(&self.sample_ray[base..base + lanes]) {
+                let r = self.sample_ray[base + start] as usize;
+                // d loss / d ray term: the run's first-layer gradients summed over its lanes.
+                for (s, row) in sum.iter_mut().zip(grad.colour1.iter()) {
+                    *s = row[start..end].iter().sum();
+                }
+                let (_, d) = Self::ray(shared, r);
+                let mut sh = [0.0f32; 16];
+                field::sh_forward(c.sh_bands as usize, d.to_array(), &mut sh);
+                let mut d_sh = [0.0f32; 16];
+                for k in 0..sh_len {
+                    fused::axpy(&mut dw1[k * hidden..(k + 1) * hidden], sh[k], sum);
+                    if pose {
+                        d_sh[k] = fused::dot(&w1[k * hidden..(k + 1) * hidden], sum);
+                    }
+                }
+                let embedding = embedding_of(shared, r);
+                let slot = shared.ray_frames.get(r).copied().unwrap_or(0) as usize;
+                let d_embedding = match (shared.fit_embedding, shared.embedding) {
+                    (true, _) => self.frame_grads.get_mut(..dim),
+                    (false, Embedding::PerFrame(_)) => self
+                        .frame_grads
+                        .get_mut(slot * frame_params..slot * frame_params + dim),
+                    (false, Embedding::Fixed(_)) => None,
+                };
+                if let Some(d_embedding) = d_embedding {
+                    for (k, (e, de)) in embedding.iter().zip(d_embedding).enumerate() {
+                        let row =
+                            (sh_len + geo_len + k) * hidden..(sh_len + geo_len + k + 1) * hidden;
+                        fused::axpy(&mut dw1[row.clone()], *e, sum);
+                        *de += fused::dot(&w1[row], sum);
+                    }
+                }
+                if pose {
+                    // The view encoding's share of d loss / d direction.
+                    let d_view =
+                        field::sh_backward(c.sh_bands as usize, d.to_array(), &d_sh[..sh_len]);
+                    let g = &mut self.ray_grads
+                        [(r - self.first_ray) * 6 + 3..(r - self.first_ray) * 6 + 6];
+                    for a in 0..3 {
+                        g[a] += d_view[a];
+                    }
+                }
+            }
+            laps.lap(Stage::ColourBackward, &mut self.times);
             if shared.fit_embedding {
-                for (k, d) in self.frame_grads[..dim].iter_mut().enumerate() {
-                    for l in 0..lanes {
-                        *d += grad.colour_in[sh_len + geo_len + k][l];
-                    }
-                }
                 continue;
-            }
-            if dim > 0 && matches!(shared.embedding, Embedding::PerFrame(_)) {
-                for l in 0..lanes {
-                    let slot = shared.ray_frames[self.sample_ray[base + l] as usize] as usize;
-                    let dst = &mut self.frame_grads[slot * frame_params..slot * frame_params + dim];
-                    for (k, d) in dst.iter_mut().enumerate() {
-                        *d += grad.colour_in[sh_len + geo_len + k][l];
-                    }
-                }
             }
             backward_layer(
                 p,
@@ -244,21 +283,12 @@ impl Chunk<'_> {
                     pose,
                 );
                 if pose {
-                    // x = o + t d: d loss / d o = d loss / d x, d loss / d d = t d loss / d x,
-                    // plus the view encoding's gradient.
+                    // x = o + t d: d loss / d o = d loss / d x, d loss / d d = t d loss / d x
+                    // (the view encoding's share came with the colour layer).
                     let r = self.sample_ray[base + l] as usize;
                     let (o, d) = Self::ray(shared, r);
                     let d_x = Vec3::from_array(d_u) / extent;
-                    let mut d_sh = [0.0f32; 16];
-                    for k in 0..sh_len {
-                        d_sh[k] = grad.colour_in[k][l];
-                    }
-                    let d_view = Vec3::from_array(field::sh_backward(
-                        c.sh_bands as usize,
-                        d.to_array(),
-                        &d_sh[..sh_len],
-                    ));
-                    let d_d = d_x * (x - o).dot(d) + d_view;
+                    let d_d = d_x * (x - o).dot(d);
                     let g =
                         &mut self.ray_grads[(r - self.first_ray) * 6..(r - self.first_ray) * 6 + 6];
                     for a in 0..3 {

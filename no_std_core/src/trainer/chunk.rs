@@ -8,7 +8,8 @@ pub(super) struct Rows<'r> {
     pub(super) feats: &'r mut [Row],
     pub(super) hidden: &'r mut [Row],
     pub(super) density_out: &'r mut [Row],
-    pub(super) colour_in: &'r mut [Row],
+    /// The colour MLP's per-sample inputs: the geometry features.
+    pub(super) colour_geo: &'r mut [Row],
     pub(super) colour1: &'r mut [Row],
     pub(super) colour2: &'r mut [Row],
     pub(super) rgb: &'r mut [Row],
@@ -18,14 +19,14 @@ pub(super) fn split_rows<'r>(c: &Config, rows: &'r mut [Row]) -> Rows<'r> {
     let (feats, rest) = rows.split_at_mut(c.density_inputs());
     let (hidden, rest) = rest.split_at_mut(c.density_hidden as usize);
     let (density_out, rest) = rest.split_at_mut(c.density_outputs());
-    let (colour_in, rest) = rest.split_at_mut(c.colour_inputs());
+    let (colour_geo, rest) = rest.split_at_mut(c.geo_features as usize);
     let (colour1, rest) = rest.split_at_mut(c.colour_hidden as usize);
     let (colour2, rgb) = rest.split_at_mut(c.colour_hidden as usize);
     Rows {
         feats,
         hidden,
         density_out,
-        colour_in,
+        colour_geo,
         colour1,
         colour2,
         rgb,
@@ -191,8 +192,10 @@ impl Chunk<'_> {
         }
     }
 
-    /// The colour MLP on samples `base..base + lanes`: their inputs into `rows.colour_in`,
-    /// then the hidden layers and `rows.rgb`.
+    /// The colour MLP on samples `base..base + lanes` into `rows.rgb`. The view encoding and
+    /// the appearance embedding are the same for every sample of a ray, so their part of the
+    /// first layer ([`ray_term`]) is computed once per run of a ray's samples; only the
+    /// geometry features (stored by the density pass) go through that layer per sample.
     pub(super) fn colour_forward(
         sample_ray: &[u32],
         geo: &[f32],
@@ -201,46 +204,37 @@ impl Chunk<'_> {
         lanes: usize,
         rows: &mut Rows<'_>,
     ) {
-        Self::load_colour_inputs(sample_ray, geo, shared, base, lanes, rows.colour_in);
-        colour_rows(shared, rows.colour_in, rows.colour1, rows.colour2, rows.rgb);
-    }
-
-    /// Colour-MLP inputs: view encoding, geometry features (stored by the density pass) and
-    /// the appearance embedding. Unused lanes are zero.
-    fn load_colour_inputs(
-        sample_ray: &[u32],
-        geo: &[f32],
-        shared: &Shared<'_>,
-        base: usize,
-        lanes: usize,
-        colour_in: &mut [Row],
-    ) {
         let c = shared.config;
-        let (sh_len, geo_len, dim) = (
-            c.sh_values(),
-            c.geo_features as usize,
-            c.embedding_dim as usize,
-        );
-        for row in colour_in.iter_mut() {
+        let (sh_len, geo_len) = (c.sh_values(), c.geo_features as usize);
+        let first = shared.layout.layers[COLOUR_HIDDEN1];
+        let hidden = first.outputs;
+        for (g, row) in rows.colour_geo.iter_mut().enumerate() {
             row.fill(0.0);
-        }
-        let mut sh = [0.0f32; 16];
-        for l in 0..lanes {
-            let s = base + l;
-            let r = sample_ray[s] as usize;
-            let (_, d) = Self::ray(shared, r);
-            field::sh_forward(c.sh_bands as usize, d.to_array(), &mut sh);
-            for k in 0..sh_len {
-                colour_in[k][l] = sh[k];
-            }
-            for g in 0..geo_len {
-                colour_in[sh_len + g][l] = geo[s * geo_len + g];
-            }
-            let emb = embedding_of(shared, r);
-            for k in 0..dim {
-                colour_in[sh_len + geo_len + k][l] = emb.get(k).copied().unwrap_or(0.0);
+            for (l, v) in row.iter_mut().enumerate().take(lanes) {
+                *v = geo[(base + l) * geo_len + g];
             }
         }
+        let mut term = [0.0f32; MAX_COLOUR_HIDDEN];
+        let term = &mut term[..hidden];
+        for (start, end) in ray_runs(&sample_ray[base..base + lanes]) {
+            ray_term(shared, sample_ray[base + start] as usize, term);
+            for (row, t) in rows.colour1.iter_mut().zip(term.iter()) {
+                row[start..end].fill(*t);
+            }
+        }
+        // Unused lanes (their geometry rows are zero) get the bias alone.
+        let p = shared.mlp;
+        let bias = &p[first.biases..first.biases + hidden];
+        for (row, b) in rows.colour1.iter_mut().zip(bias) {
+            row[lanes..].fill(*b);
+        }
+        let weights = &p[first.weights..first.biases];
+        field::layer_forward_onto(
+            &weights[sh_len * hidden..(sh_len + geo_len) * hidden],
+            rows.colour_geo,
+            rows.colour1,
+        );
+        colour_rows(shared, rows.colour1, rows.colour2, rows.rgb);
     }
 
     /// Render this chunk's rays (all of them, in as many passes as the sample capacity
@@ -341,6 +335,46 @@ impl Chunk<'_> {
     }
 }
 
+/// The runs of equal rays in `sample_ray` (a ray's samples are consecutive): `(start, end)`
+/// lane ranges.
+pub(super) fn ray_runs(sample_ray: &[u32]) -> impl Iterator<Item = (usize, usize)> + '_ {
+    let mut start = 0;
+    core::iter::from_fn(move || {
+        let ray = *sample_ray.get(start)?;
+        let len = sample_ray[start..]
+            .iter()
+            .take_while(|&&r| r == ray)
+            .count();
+        let run = (start, start + len);
+        start += len;
+        Some(run)
+    })
+}
+
+/// The colour MLP's first layer on ray `r`'s own inputs into `term` (`colour_hidden`
+/// values): the bias, plus the view encoding's and the appearance embedding's weights times
+/// their values, each row fused in order (encoding, then embedding).
+pub(super) fn ray_term(shared: &Shared<'_>, r: usize, term: &mut [f32]) {
+    let c = shared.config;
+    let (sh_len, geo_len) = (c.sh_values(), c.geo_features as usize);
+    let first = shared.layout.layers[COLOUR_HIDDEN1];
+    let hidden = first.outputs;
+    let p = shared.mlp;
+    let weights = &p[first.weights..first.biases];
+    term.copy_from_slice(&p[first.biases..first.biases + hidden]);
+    let mut sh = [0.0f32; 16];
+    let (_, d) = Chunk::ray(shared, r);
+    field::sh_forward(c.sh_bands as usize, d.to_array(), &mut sh);
+    for (k, v) in sh.iter().enumerate().take(sh_len) {
+        fused::axpy(term, *v, &weights[k * hidden..(k + 1) * hidden]);
+    }
+    let embedding = embedding_of(shared, r);
+    for (k, v) in embedding.iter().enumerate().take(c.embedding_dim as usize) {
+        let row = sh_len + geo_len + k;
+        fused::axpy(term, *v, &weights[row * hidden..(row + 1) * hidden]);
+    }
+}
+
 /// The appearance embedding of the frame ray `r` was drawn from (or the fixed one).
 pub(super) fn embedding_of<'s>(shared: &Shared<'s>, r: usize) -> &'s [f32] {
     let c = shared.config;
@@ -415,21 +449,14 @@ fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mu
     );
 }
 
-fn colour_rows(
-    shared: &Shared<'_>,
-    input: &[Row],
-    h1: &mut [Row],
-    h2: &mut [Row],
-    rgb: &mut [Row],
-) {
+/// The colour MLP from its first layer's output `h1` (before the ReLU) to `rgb`.
+fn colour_rows(shared: &Shared<'_>, h1: &mut [Row], h2: &mut [Row], rgb: &mut [Row]) {
     let layers = &shared.layout.layers;
     let p = shared.mlp;
     let wb = |i: usize| {
         let l = layers[i];
         (&p[l.weights..l.biases], &p[l.biases..l.biases + l.outputs])
     };
-    let (w, b) = wb(COLOUR_HIDDEN1);
-    field::layer_forward(w, b, input, h1);
     field::relu_forward(h1);
     let (w, b) = wb(COLOUR_HIDDEN2);
     field::layer_forward(w, b, h1, h2);

@@ -15,11 +15,12 @@
 use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
-    MAX_CHUNKS, MAX_SCALES, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate, activation_floats,
-    forward_sample_floats, sample_floats, widest_layer,
+    MAX_CHUNKS, MAX_COLOUR_HIDDEN, MAX_SCALES, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate,
+    activation_floats, forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
+use crate::fused;
 use crate::optim::{self, AdamStep};
 use crate::profile::{Bucket, Laps, Profiler, Stage, StageTimes, Timer};
 use crate::render::{self, Aabb, OccupancyView};
