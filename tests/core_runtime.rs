@@ -126,7 +126,8 @@ fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
 /// lego's box has length unit 1). Re-recorded for format 4 (issue 14): with the version set
 /// back to 3 and the config's two new fields (`plane_tv_weight`, `coarse_to_fine_steps`, both
 /// 0) cut out, the bytes hash to the format-3 records (0xe701_c3ed_4afd_6a3a and
-/// 0x285f_41bd_5683_c514).
+/// 0x285f_41bd_5683_c514). Re-recorded for the colour layer's per-ray term (issue 16): its
+/// sums run in a new order (format unchanged; lego's quality unchanged, README).
 #[test]
 fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     let mut plain = tiny_config();
