@@ -37,6 +37,13 @@ fn bytes(path: &Path) -> Vec<u8> {
     std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
+/// Two task folders hold the same record, render and model, byte for byte.
+fn same_task_files(a: &Path, b: &Path) {
+    for file in ["result.json", "render.png", "checkpoint.onrf"] {
+        assert_eq!(bytes(&a.join(file)), bytes(&b.join(file)), "{file}");
+    }
+}
+
 #[test]
 fn a_local_sweep_reports_a_failed_task_and_a_rerun_runs_only_the_unfinished_ones() {
     let dir = temp_dir("local");
@@ -119,13 +126,62 @@ fn a_local_sweep_reports_a_failed_task_and_a_rerun_runs_only_the_unfinished_ones
         "3",
     ]);
     assert!(ok, "{text}");
-    for file in ["result.json", "render.png", "checkpoint.onrf"] {
-        assert_eq!(
-            bytes(&other.join("tasks/0").join(file)),
-            bytes(&out.join("tasks/0").join(file)),
-            "{file}"
-        );
-    }
+    same_task_files(&other.join("tasks/0"), &out.join("tasks/0"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A task stopped part-way (`--stop-after`, as a killed task stops at its last progress
+/// checkpoint) continues from its `progress.onrf` to the bytes of a run never stopped, also
+/// across an anytime point; a progress file of another task's config is refused.
+#[test]
+fn a_stopped_task_continues_to_the_bytes_of_a_run_never_stopped() {
+    let dir = temp_dir("resume");
+    let description = dir.join("sweep.toml");
+    let text = DESCRIPTION.replace(
+        "[[variants]]\nname = \"baseline\"",
+        "[anytime]\nsteps = [4, 9]\nquality = \"psnr_full\"\ntargets = [20]\nbudgets_s = [30]\n\n[[variants]]\nname = \"baseline\"",
+    );
+    assert!(text.contains("[anytime]"));
+    std::fs::write(&description, text).unwrap();
+    let description = description.to_str().unwrap();
+    let (whole, stopped) = (dir.join("whole"), dir.join("stopped"));
+    let run_task = |index: &str, out: &Path, extra: &[&str]| {
+        sweep(
+            &[
+                &[
+                    "run-task",
+                    description,
+                    index,
+                    "--out",
+                    out.to_str().unwrap(),
+                ],
+                extra,
+            ]
+            .concat(),
+        )
+    };
+    let (ok, text) = run_task("1", &whole, &[]);
+    assert!(ok, "{text}");
+    assert!(
+        !whole.join("tasks/1/progress.onrf").exists(),
+        "left its progress file"
+    );
+
+    let (ok, text) = run_task("1", &stopped, &["--stop-after", "7"]);
+    assert!(ok && text.contains("stopped after step 7"), "{text}");
+    let progress = stopped.join("tasks/1/progress.onrf");
+    assert!(progress.is_file() && !stopped.join("tasks/1/result.json").exists());
+
+    // Another task (another config) refuses the state.
+    std::fs::create_dir_all(stopped.join("tasks/0")).unwrap();
+    std::fs::copy(&progress, stopped.join("tasks/0/progress.onrf")).unwrap();
+    let (ok, text) = run_task("0", &stopped, &[]);
+    assert!(!ok && text.contains("another config"), "{text}");
+
+    let (ok, text) = run_task("1", &stopped, &[]);
+    assert!(ok, "{text}");
+    assert!(!progress.exists(), "left its progress file");
+    same_task_files(&stopped.join("tasks/1"), &whole.join("tasks/1"));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

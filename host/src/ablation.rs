@@ -91,11 +91,36 @@ pub struct Experiment<'a> {
     /// training clock paused; ascending, each below the config's steps (the last step is
     /// always scored).
     pub score_at: &'a [u32],
+    /// Where a long run keeps its state, so that a killed run continues to the same bytes.
+    pub progress: Option<Progress<'a>>,
 }
+
+/// A run's progress checkpoint: the trainer's state and the figures so far, written
+/// atomically every `every` steps (and at `stop_after`) and removed when the run ends. A run
+/// that finds one continues from it.
+#[derive(Clone, Copy, Debug)]
+pub struct Progress<'a> {
+    pub path: &'a std::path::Path,
+    pub every: u32,
+    /// Stop after this step (before the last), the state saved: [`HostError::Stopped`].
+    pub stop_after: Option<u32>,
+}
+
+/// The figures a progress checkpoint carries beside the trainer's sections.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct FiguresSoFar {
+    train_seconds: f64,
+    rays: u64,
+    samples: u64,
+    curve: Vec<CurvePoint>,
+}
+
+/// The progress checkpoint's section of [`FiguresSoFar`].
+const FIGURES_SECTION: &str = "run_figures";
 
 /// The held-out views' mean figures after `step` training steps, reached in `seconds` of
 /// training (scoring time left out).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CurvePoint {
     pub step: u32,
     pub seconds: f64,
@@ -176,6 +201,7 @@ pub fn run_variant(
         threads,
         fit_steps,
         score_at: &[],
+        progress: None,
     };
     let mut result = experiment.run(&config, on_step, None)?;
     result.variant = variant;
@@ -214,11 +240,23 @@ impl Experiment<'_> {
             let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
             Ok((scores, report::mean_metrics(&per_view)))
         };
-        let mut train_seconds = 0.0;
+        let mut so_far = FiguresSoFar {
+            train_seconds: 0.0,
+            rays: 0,
+            samples: 0,
+            curve: Vec::with_capacity(self.score_at.len() + 1),
+        };
+        if let Some(progress) = self.progress.filter(|p| p.path.exists()) {
+            so_far = resume(progress.path, &config, &mut trainer)?;
+        }
+        let FiguresSoFar {
+            mut train_seconds,
+            mut rays,
+            mut samples,
+            mut curve,
+        } = so_far;
         let mut start = Instant::now();
-        let (mut rays, mut samples) = (0u64, 0u64);
-        let mut curve = Vec::with_capacity(self.score_at.len() + 1);
-        for step in 1..=config.steps {
+        for step in trainer.state().step + 1..=config.steps {
             let report = trainer
                 .step(&executor)
                 .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
@@ -236,6 +274,26 @@ impl Experiment<'_> {
                     metrics,
                 });
                 start = Instant::now();
+            }
+            if let Some(progress) = self.progress.filter(|_| step < config.steps) {
+                let stop = progress.stop_after == Some(step);
+                if stop || step % progress.every.max(1) == 0 {
+                    train_seconds += start.elapsed().as_secs_f64();
+                    let figures = FiguresSoFar {
+                        train_seconds,
+                        rays,
+                        samples,
+                        curve: curve.clone(),
+                    };
+                    save_progress(progress.path, &trainer, &figures)?;
+                    if stop {
+                        return Err(HostError::Stopped {
+                            progress: progress.path.to_path_buf(),
+                            step,
+                        });
+                    }
+                    start = Instant::now();
+                }
             }
         }
         train_seconds += start.elapsed().as_secs_f64();
@@ -291,6 +349,15 @@ impl Experiment<'_> {
             }
             None => (None, None),
         };
+        if let Some(progress) = self.progress {
+            // The run's own scratch file: its figures are in the result now.
+            match std::fs::remove_file(progress.path) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(HostError::io(progress.path, e));
+                }
+                _ => {}
+            }
+        }
         Ok(VariantResult {
             variant: Variant {
                 name: "",
@@ -310,6 +377,42 @@ impl Experiment<'_> {
             surface,
         })
     }
+}
+
+/// Write the trainer's state and `figures` to the progress checkpoint `path` (atomically).
+fn save_progress(
+    path: &std::path::Path,
+    trainer: &Trainer<'_>,
+    figures: &FiguresSoFar,
+) -> Result<()> {
+    let mut checkpoint = train::checkpoint_of(path, trainer)?;
+    let bytes = postcard::to_allocvec(figures)
+        .map_err(|e| HostError::invalid(path, format!("encoding the run's figures failed: {e}")))?;
+    checkpoint.sections.push(crate::checkpoint::Section {
+        name: FIGURES_SECTION.to_string(),
+        bytes,
+    });
+    crate::checkpoint::save(path, &checkpoint)
+}
+
+/// Restore the progress checkpoint `path` into `trainer` (built from `config` with the run's
+/// frames loaded) and return the figures it carries. Refuses the state of another run.
+fn resume(
+    path: &std::path::Path,
+    config: &Config,
+    trainer: &mut Trainer<'_>,
+) -> Result<FiguresSoFar> {
+    let checkpoint = crate::checkpoint::load(path)?;
+    if train::checkpoint_config(path, &checkpoint)? != *config {
+        return Err(HostError::invalid(
+            path,
+            "holds the state of a run with another config: remove it to start this run over",
+        ));
+    }
+    train::restore_checkpoint(path, &checkpoint, trainer)?;
+    let figures: FiguresSoFar = postcard::from_bytes(checkpoint.section(FIGURES_SECTION)?)
+        .map_err(|e| HostError::field(path, FIGURES_SECTION, format!("cannot decode: {e}")))?;
+    Ok(figures)
 }
 
 #[cfg(test)]

@@ -31,6 +31,13 @@ pub enum HostError {
     },
     #[error("core: {0}")]
     Core(String),
+    /// A run stopped on request before its last step, its state saved in `progress` (running it
+    /// again continues from there).
+    #[error(
+        "stopped after step {step}; the run's state is in {}: run it again to continue",
+        progress.display()
+    )]
+    Stopped { progress: PathBuf, step: u32 },
 }
 
 impl HostError {

@@ -338,6 +338,7 @@ fn run_level(
         threads: args.threads,
         fit_steps: args.fit_steps,
         score_at: &[],
+        progress: None,
     };
     let run = |variant: &str| -> Fallible<ModelOutcome> {
         let task = (sweep.tasks.iter())

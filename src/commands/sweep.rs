@@ -5,12 +5,13 @@
 
 use super::ablate::{load, simulated};
 use super::{Fallible, choose_box};
-use orbit_nerf_host::ablation::Experiment;
+use orbit_nerf_host::ablation::{Experiment, Progress};
 use orbit_nerf_host::dataset::split_every;
+use orbit_nerf_host::error::HostError;
 use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
 use orbit_nerf_host::sweep::results::{
-    self, CHECKPOINT, CurveRecord, LOG, RENDER, TaskResult, TaskTiming, array_spec, fnv1a,
-    read_result, task_dir, unfinished, write_timing,
+    self, CHECKPOINT, CurveRecord, LOG, PROGRESS, RENDER, TaskResult, TaskTiming, array_spec,
+    fnv1a, read_result, task_dir, unfinished, write_timing,
 };
 use orbit_nerf_host::sweep::slurm::{self, Resources};
 use orbit_nerf_host::sweep::{Source, Sweep, Task};
@@ -60,6 +61,11 @@ enum SweepCommand {
         /// Worker threads (results do not depend on it).
         #[arg(long, default_value_t = 1)]
         threads: usize,
+        /// Stop after this step, the task's state saved in its folder (`progress.onrf`);
+        /// running the task again continues from there to the same bytes. A task killed any
+        /// other way continues from its last tenth of the steps.
+        #[arg(long)]
+        stop_after: Option<u32>,
     },
     /// Write a Slurm job-array script of the unfinished tasks to `<out>/sweep.sbatch` and
     /// submit it with `sbatch`. The binary, the description and `--out` must be on a
@@ -124,11 +130,13 @@ pub fn run(args: &SweepArgs) -> Fallible<()> {
             index,
             out,
             threads,
+            stop_after,
         } => run_task(
             description,
             *index,
             out,
             check_workers("--threads", *threads)?,
+            *stop_after,
         ),
         SweepCommand::Slurm {
             description,
@@ -163,7 +171,13 @@ fn collect(sweep: &Sweep, out: &Path) -> Fallible<()> {
 }
 
 /// Train and score one task into `<out>/tasks/<index>/` (nothing when it already has a result).
-fn run_task(description: &Path, index: usize, out: &Path, threads: usize) -> Fallible<()> {
+fn run_task(
+    description: &Path,
+    index: usize,
+    out: &Path,
+    threads: usize,
+    stop_after: Option<u32>,
+) -> Fallible<()> {
     let sweep = Sweep::read(description)?;
     let Some(task) = sweep.tasks.get(index) else {
         return Err(format!(
@@ -184,7 +198,13 @@ fn run_task(description: &Path, index: usize, out: &Path, threads: usize) -> Fal
     }
     let dir = task_dir(out, index);
     println!("task {index}: {}", task.name);
-    let (result, timing) = train_and_score(&sweep, task, &dir, threads)?;
+    let (result, timing) = match train_and_score(&sweep, task, &dir, threads, stop_after) {
+        Err(e) if matches!(e.downcast_ref(), Some(HostError::Stopped { .. })) => {
+            println!("task {index}: {e}");
+            return Ok(());
+        }
+        outcome => outcome?,
+    };
     write_timing(out, &timing)?;
     results::write_result(out, &result)?;
     println!(
@@ -202,6 +222,7 @@ fn train_and_score(
     task: &Task,
     dir: &Path,
     threads: usize,
+    stop_after: Option<u32>,
 ) -> Fallible<(TaskResult, TaskTiming)> {
     let (mut dataset, truth) = match &sweep.source {
         Source::Scene(scene) => simulated(
@@ -238,6 +259,11 @@ fn train_and_score(
         threads,
         fit_steps: sweep.fit_steps,
         score_at: &sweep.score_at(task),
+        progress: Some(Progress {
+            path: &dir.join(PROGRESS),
+            every: (task.config.steps / 10).max(1),
+            stop_after,
+        }),
     };
     let (mut steps, mut skipped) = (0u32, 0u32);
     let every = (task.config.steps / 10).max(1);

@@ -18,7 +18,7 @@ use crate::metrics::{self, ImageRef, JnbVariant, MetricError};
 /// - JNB is [`metrics::JnbScore::blur`] with [`JnbVariant::Paper`], lower is sharper, measured
 ///   on the render alone (it is a no-reference metric). `f64::NAN` when the region has no edge
 ///   block to measure: a blank render, or a region narrower or shorter than one 64x64 block.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ViewMetrics {
     pub psnr_right: f64,
     pub ssim_right: f64,

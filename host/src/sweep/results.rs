@@ -1,5 +1,5 @@
 //! A sweep's results: the folder of each task (`<out>/tasks/<index>/`: `result.json`,
-//! `timing.json`, `render.png`, `checkpoint.onrf`, `log.txt`), the records a task writes, and
+//! `timing.json`, `render.png`, `checkpoint.onrf`, `log.txt`, while it runs `progress.onrf`), the records a task writes, and
 //! the merged tables and figures (`sweep.csv`, `sweep.md`, `renders.png`, with noise levels
 //! the pose-noise sections and plots, with `[anytime]` the trade-off report). `result.json`
 //! holds nothing of where or how a task ran (no path, no thread count, no time), so a task
@@ -24,6 +24,9 @@ pub const RENDER: &str = "render.png";
 pub const CHECKPOINT: &str = "checkpoint.onrf";
 /// The task's output (the local runner and the Slurm script both write it there).
 pub const LOG: &str = "log.txt";
+/// The state of a task still running or killed (every tenth of its steps): running the task
+/// again continues from it; removed when the task finishes.
+pub const PROGRESS: &str = "progress.onrf";
 
 /// The folder of task `index` under the sweep's output folder `out`.
 pub fn task_dir(out: &Path, index: usize) -> PathBuf {
