@@ -167,6 +167,13 @@ fn a_stopped_task_continues_to_the_bytes_of_a_run_never_stopped() {
         "left its progress file"
     );
 
+    for bad in ["0", "12"] {
+        let (ok, text) = run_task("1", &stopped, &["--stop-after", bad]);
+        assert!(
+            !ok && text.contains(&format!("--stop-after {bad}")),
+            "{text}"
+        );
+    }
     let (ok, text) = run_task("1", &stopped, &["--stop-after", "7"]);
     assert!(ok && text.contains("stopped after step 7"), "{text}");
     let progress = stopped.join("tasks/1/progress.onrf");
@@ -180,6 +187,11 @@ fn a_stopped_task_continues_to_the_bytes_of_a_run_never_stopped() {
 
     let (ok, text) = run_task("1", &stopped, &[]);
     assert!(ok, "{text}");
+    // It goes on from step 8, and its progress lines say so.
+    assert!(
+        text.contains("  step 8: mse") && !text.contains("  step 1: mse"),
+        "{text}"
+    );
     assert!(!progress.exists(), "left its progress file");
     same_task_files(&stopped.join("tasks/1"), &whole.join("tasks/1"));
     let _ = std::fs::remove_dir_all(&dir);

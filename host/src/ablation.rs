@@ -188,7 +188,7 @@ pub fn run_variant(
     variant: Variant,
     threads: usize,
     fit_steps: u32,
-    on_step: &mut dyn FnMut(&StepReport),
+    on_step: &mut dyn FnMut(u32, &StepReport),
 ) -> Result<VariantResult> {
     let mut config = *base;
     config.embedding_dim = variant.embedding_dim;
@@ -216,7 +216,7 @@ impl Experiment<'_> {
     pub fn run(
         &self,
         config: &Config,
-        on_step: &mut dyn FnMut(&StepReport),
+        on_step: &mut dyn FnMut(u32, &StepReport),
         checkpoint: Option<&std::path::Path>,
     ) -> Result<VariantResult> {
         let (dataset, train_idx) = (self.dataset, self.train_idx);
@@ -262,7 +262,7 @@ impl Experiment<'_> {
                 .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
             rays += report.rays as u64;
             samples += report.samples as u64;
-            on_step(&report);
+            on_step(step, &report);
             if self.score_at.contains(&step) && step < config.steps {
                 train_seconds += start.elapsed().as_secs_f64();
                 // Scoring reads the field and fits held-out embeddings in scratch buffers:

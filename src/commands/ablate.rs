@@ -232,7 +232,7 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             variant,
             args.threads,
             args.fit_steps,
-            &mut |_| {},
+            &mut |_, _| {},
         )?;
         println!(
             "  {:.1} s, held-out PSNR {:.2} dB",
@@ -344,7 +344,7 @@ fn run_level(
         let task = (sweep.tasks.iter())
             .find(|t| t.noise == Some(noise) && t.variant == variant)
             .ok_or_else(|| format!("the sweep has no task `{variant}` at this level"))?;
-        let r = experiment.run(&task.config, &mut |_| {}, None)?;
+        let r = experiment.run(&task.config, &mut |_, _| {}, None)?;
         let after = r.pose_after.unwrap_or_default();
         println!(
             "  {}: SSIM {:.4}, rotation error {:.3} deg, position error {:.1} mm",

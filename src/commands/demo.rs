@@ -65,7 +65,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
         APPEARANCE_POSE,
         args.threads,
         FIT_STEPS,
-        &mut |step| {
+        &mut |_, step| {
             if !step.skipped {
                 running.add(step.mse);
             }

@@ -196,6 +196,13 @@ fn run_task(
         );
         return Ok(());
     }
+    if let Some(step) = stop_after.filter(|&s| s == 0 || s >= task.config.steps) {
+        return Err(format!(
+            "--stop-after {step}: must be a step before task {index}'s last (1 to {})",
+            task.config.steps.saturating_sub(1)
+        )
+        .into());
+    }
     let dir = task_dir(out, index);
     println!("task {index}: {}", task.name);
     let (result, timing) = match train_and_score(&sweep, task, &dir, threads, stop_after) {
@@ -251,6 +258,8 @@ fn train_and_score(
         sweep.config_file.as_deref(),
         &train_idx,
     )?;
+    // A progress line and a progress checkpoint every tenth of the steps.
+    let every = (task.config.steps / 10).max(1);
     let experiment = Experiment {
         dataset: &dataset,
         truth: truth.as_deref(),
@@ -261,31 +270,20 @@ fn train_and_score(
         score_at: &sweep.score_at(task),
         progress: Some(Progress {
             path: &dir.join(PROGRESS),
-            every: (task.config.steps / 10).max(1),
+            every,
             stop_after,
         }),
     };
-    let (mut steps, mut skipped) = (0u32, 0u32);
-    let every = (task.config.steps / 10).max(1);
     let checkpoint = dir.join(CHECKPOINT);
     let result = experiment.run(
         &task.config,
-        &mut |report| {
-            steps += 1;
-            skipped += report.skipped as u32;
-            if steps % every == 0 {
-                println!("  step {steps}: mse {:.5}", report.mse);
+        &mut |step, report| {
+            if step % every == 0 {
+                println!("  step {step}: mse {:.5}", report.mse);
             }
         },
         Some(&checkpoint),
     )?;
-    if skipped == steps {
-        return Err(format!(
-            "task {}: every one of its {steps} steps was skipped (non-finite loss or gradients): no result",
-            task.index
-        )
-        .into());
-    }
     let first = &dataset.frames[test_idx[0]];
     write_png(
         &dir.join(RENDER),
