@@ -117,6 +117,25 @@ fn same_seed_gives_identical_checkpoints_and_threads_do_not_matter() {
     assert!(a != other_seed, "the seed has no effect");
 }
 
+/// The MLP kernels at sixteen lanes per instruction (AVX-512, where the CPU has it) give the
+/// checkpoint bytes of the eight-lane ones: every output sums its terms in the same order.
+/// On a CPU without AVX-512 there is nothing to compare (`lego_checkpoint_bytes_equal_the_recorded_ones`
+/// then checks the eight-lane kernels against the records).
+#[test]
+fn the_avx512_kernels_give_the_bytes_of_the_eight_lane_ones() {
+    if !orbit_nerf_core::wide_vectors() {
+        println!("no AVX-512 on this CPU: nothing to compare");
+        return;
+    }
+    let Some(wide) = checkpoint_after(200, 2, 7) else {
+        return;
+    };
+    orbit_nerf_core::allow_wide_vectors(false);
+    let narrow = checkpoint_after(200, 2, 7);
+    orbit_nerf_core::allow_wide_vectors(true);
+    assert!(Some(wide) == narrow, "AVX-512 and AVX2 kernels differ");
+}
+
 /// Refactors and ports must not change a single bit of what training computes: the checkpoint
 /// bytes after a fixed run equal the ones recorded when this test was written. Two runs: the
 /// tiny profile (stochastic rounding, no embeddings), and the same with every method path on

@@ -8,6 +8,7 @@
 
 use crate::config::{Config, LANES, MAX_SCALES};
 use crate::fused;
+pub use crate::fused::Row;
 use half::f16;
 
 /// The two world axes spanned by each of the three planes of a scale: xy, xz, yz.
@@ -439,9 +440,6 @@ pub fn sh_backward(bands: usize, d: [f32; 3], d_out: &[f32]) -> [f32; 3] {
     g
 }
 
-/// One lane-row: the `LANES` values of one feature across the samples of a mini-batch.
-pub type Row = [f32; LANES];
-
 /// `y[n] = b[n] + sum_k w[k * outputs + n] * x[k]` for all lanes, one fused multiply-add per
 /// term in order of `k`. `x` has `inputs` rows and `y` has `outputs` rows.
 pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
@@ -455,13 +453,7 @@ pub fn layer_forward(w: &[f32], b: &[f32], x: &[Row], y: &mut [Row]) {
 /// whose bias (and the terms of any inputs summed elsewhere) `y` already holds.
 pub fn layer_forward_onto(w: &[f32], x: &[Row], y: &mut [Row]) {
     let outputs = y.len();
-    for (n, yn) in y.iter_mut().enumerate() {
-        let mut acc = *yn;
-        for (k, xk) in x.iter().enumerate() {
-            fused::axpy(&mut acc, w[k * outputs + n], xk);
-        }
-        *yn = acc;
-    }
+    fused::combine_rows(y, x, |n, k| w[k * outputs + n]);
 }
 
 /// Backward of `layer_forward`: accumulates d w and d b from `dy`, and (if `dx` is given)
@@ -481,68 +473,22 @@ pub fn layer_backward(
     // sum of outer products with accumulators held in registers (no horizontal sums).
     let stride = outputs.div_ceil(8) * 8;
     let dyt = &mut dy_lane_major[..LANES * stride];
-    for l in 0..LANES {
-        let row = &mut dyt[l * stride..(l + 1) * stride];
-        for (n, v) in row.iter_mut().enumerate() {
-            *v = dy.get(n).map_or(0.0, |d| d[l]);
+    for (l, row) in dyt.chunks_exact_mut(stride.max(1)).enumerate() {
+        let (values, padding) = row.split_at_mut(outputs);
+        for (v, d) in values.iter_mut().zip(dy) {
+            *v = d[l];
         }
+        padding.fill(0.0);
     }
-    accumulate_outer(&ONES, dyt, stride, db);
-    for (k, xk) in x.iter().enumerate() {
-        accumulate_outer(xk, dyt, stride, &mut dw[k * outputs..(k + 1) * outputs]);
-    }
+    fused::outer_products(&[ONES], dyt, stride, outputs, db);
+    fused::outer_products(x, dyt, stride, outputs, dw);
     if let Some(dx) = dx {
-        for (k, dxk) in dx.iter_mut().enumerate() {
-            let wk = &w[k * outputs..(k + 1) * outputs];
-            let mut acc = [0.0f32; LANES];
-            for (wkn, dyn_) in wk.iter().zip(dy) {
-                fused::axpy(&mut acc, *wkn, dyn_);
-            }
-            *dxk = acc;
-        }
+        dx.fill([0.0; LANES]);
+        fused::combine_rows(dx, dy, |k, n| w[k * outputs + n]);
     }
 }
 
 const ONES: Row = [1.0; LANES];
-
-/// `dst[n] += sum_l coef[l] * dyt[l * stride + n]` for `n < dst.len()`, summed over the
-/// lanes in order, 64 (then 32, then 8) columns at a time: 64 columns are the eight
-/// accumulator registers that keep both FMA pipes busy.
-#[inline(always)]
-fn accumulate_outer(coef: &Row, dyt: &[f32], stride: usize, dst: &mut [f32]) {
-    let mut col = 0;
-    while col + 64 <= stride {
-        accumulate_columns::<64>(coef, dyt, stride, col, dst);
-        col += 64;
-    }
-    while col + 32 <= stride {
-        accumulate_columns::<32>(coef, dyt, stride, col, dst);
-        col += 32;
-    }
-    while col < stride {
-        accumulate_columns::<8>(coef, dyt, stride, col, dst);
-        col += 8;
-    }
-}
-
-/// [`accumulate_outer`] for the `W` columns from `col`.
-#[inline(always)]
-fn accumulate_columns<const W: usize>(
-    coef: &Row,
-    dyt: &[f32],
-    stride: usize,
-    col: usize,
-    dst: &mut [f32],
-) {
-    let mut acc = [0.0f32; W];
-    for l in 0..LANES {
-        let start = l * stride + col;
-        fused::axpy(&mut acc, coef[l], &dyt[start..start + W]);
-    }
-    for (o, a) in dst.iter_mut().skip(col).zip(&acc) {
-        *o += a;
-    }
-}
 
 pub fn relu_forward(y: &mut [Row]) {
     for row in y {

@@ -1,12 +1,19 @@
 //! Fused multiply-add, `a * b + c` rounded once, with the same bits on every target.
 //!
 //! x86-64 with FMA (the host build's `x86-64-v3`) runs the MLP kernels' lane loops as AVX
-//! `vfmadd` eight lanes at a time, hard-float 32-bit ARM (Cortex-M4F) as `vfma.f32` four
-//! lanes at a time, and every other target calls `libm::fmaf`, which is correctly rounded (a
-//! hardware `fmadd` on aarch64, exact software elsewhere). A fused operation is correctly
-//! rounded by definition, so all give the same bits, whatever the vector width.
+//! `vfmadd` eight lanes at a time, or sixteen when the CPU has AVX-512 (detected at run
+//! time, [`wide_vectors`]); hard-float 32-bit ARM (Cortex-M4F) as `vfma.f32` four lanes at
+//! a time, and every other target calls `libm::fmaf`, which is correctly rounded (a hardware
+//! `fmadd` on aarch64, exact software elsewhere). A fused operation is correctly rounded by
+//! definition and every output sums its terms in the same order on every path, so all give
+//! the same bits, whatever the vector width.
 //! One fused operation instead of a multiply and an add halves the MLPs' arithmetic, which
 //! on CPUs without separate add pipes (Intel's) is what bounds them.
+
+use crate::config::LANES;
+
+/// One lane-row: the `LANES` values of one feature across the samples of a mini-batch.
+pub type Row = [f32; LANES];
 
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
 use core::arch::x86_64::{__m256, _mm256_fmadd_ps, _mm256_set1_ps, _mm256_setzero_ps};
@@ -120,6 +127,421 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     ((sums[0] + sums[1]) + (sums[2] + sums[3])) + ((sums[4] + sums[5]) + (sums[6] + sums[7]))
 }
 
+/// `out[n] += sum_j coef(n, j) * inputs[j]` for every row `n` of `out`, one fused operation
+/// per term in order of `j`: a layer's forward pass (`coef(n, j)` the weight from input `j`
+/// to output `n`, `out` holding the biases) or its input gradient (the weight from `n` to `j`).
+#[inline(always)]
+pub fn combine_rows(out: &mut [Row], inputs: &[Row], coef: impl Fn(usize, usize) -> f32) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    if wide_vectors() {
+        #[allow(unsafe_code)]
+        // SAFETY: `wide_vectors` found AVX-512F on this CPU, with its registers enabled by
+        // the OS.
+        unsafe {
+            avx512::combine_rows(out, inputs, coef)
+        };
+        return;
+    }
+    combine_rows_narrow(out, inputs, coef);
+}
+
+/// [`combine_rows`] a row at a time through [`axpy`].
+#[inline(always)]
+fn combine_rows_narrow(out: &mut [Row], inputs: &[Row], coef: impl Fn(usize, usize) -> f32) {
+    for (n, on) in out.iter_mut().enumerate() {
+        let mut acc = *on;
+        for (j, xj) in inputs.iter().enumerate() {
+            axpy(&mut acc, coef(n, j), xj);
+        }
+        *on = acc;
+    }
+}
+
+/// `dst[k * outputs + n] += sum_l coefs[k][l] * dyt[l * stride + n]` for every `k` and
+/// `n < outputs`: each sum fused over the lanes `l` in order from zero, then added to `dst`.
+/// A layer's weight gradient: `coefs` are its input rows, `dyt` its output gradients
+/// lane-major in rows of `stride` floats (`outputs` padded to a multiple of 8).
+#[inline(always)]
+pub fn outer_products(coefs: &[Row], dyt: &[f32], stride: usize, outputs: usize, dst: &mut [f32]) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    if wide_vectors() {
+        #[allow(unsafe_code)]
+        // SAFETY: as in `combine_rows`.
+        unsafe {
+            avx512::outer_products(coefs, dyt, stride, outputs, dst)
+        };
+        return;
+    }
+    outer_products_narrow(coefs, dyt, stride, outputs, dst);
+}
+
+/// [`outer_products`] through [`axpy`]: 64 columns of one input at a time, then 32 of two,
+/// 16 of four and 8 of eight, always eight AVX accumulator registers, enough to keep both FMA
+/// pipes busy.
+#[inline(always)]
+fn outer_products_narrow(
+    coefs: &[Row],
+    dyt: &[f32],
+    stride: usize,
+    outputs: usize,
+    dst: &mut [f32],
+) {
+    let mut col = 0;
+    while col + 64 <= stride {
+        narrow_tiles::<1, 64>(coefs, dyt, stride, outputs, col, dst);
+        col += 64;
+    }
+    while col + 32 <= stride {
+        narrow_tiles::<2, 32>(coefs, dyt, stride, outputs, col, dst);
+        col += 32;
+    }
+    while col + 16 <= stride {
+        narrow_tiles::<4, 16>(coefs, dyt, stride, outputs, col, dst);
+        col += 16;
+    }
+    while col < stride {
+        narrow_tiles::<8, 8>(coefs, dyt, stride, outputs, col, dst);
+        col += 8;
+    }
+}
+
+/// The `W` columns from `col` for every input, `K` inputs at a time (the rest one by one):
+/// `K * W / 8` independent accumulators, so that narrow layers (a few outputs) are not bound
+/// by the latency of one chain of fused operations.
+#[inline(always)]
+fn narrow_tiles<const K: usize, const W: usize>(
+    coefs: &[Row],
+    dyt: &[f32],
+    stride: usize,
+    outputs: usize,
+    col: usize,
+    dst: &mut [f32],
+) {
+    let mut k = 0;
+    while k + K <= coefs.len() {
+        narrow_tile::<K, W>(&coefs[k..k + K], k, dyt, stride, outputs, col, dst);
+        k += K;
+    }
+    while k < coefs.len() {
+        narrow_tile::<1, W>(&coefs[k..k + 1], k, dyt, stride, outputs, col, dst);
+        k += 1;
+    }
+}
+
+/// Inputs `k0 .. k0 + K` (`coefs`), the `W` columns from `col`.
+#[inline(always)]
+fn narrow_tile<const K: usize, const W: usize>(
+    coefs: &[Row],
+    k0: usize,
+    dyt: &[f32],
+    stride: usize,
+    outputs: usize,
+    col: usize,
+    dst: &mut [f32],
+) {
+    let mut acc = [[0.0f32; W]; K];
+    for l in 0..LANES {
+        let start = l * stride + col;
+        let row = &dyt[start..start + W];
+        for (a, coef) in acc.iter_mut().zip(coefs) {
+            axpy(a, coef[l], row);
+        }
+    }
+    for (t, a) in acc.iter().enumerate() {
+        add_columns(a, k0 + t, outputs, col, dst);
+    }
+}
+
+/// Adds a tile's column sums to input `k`'s row of `dst`, dropping the padding columns.
+#[inline(always)]
+fn add_columns(sums: &[f32], k: usize, outputs: usize, col: usize, dst: &mut [f32]) {
+    let row = &mut dst[k * outputs..(k + 1) * outputs];
+    for (o, s) in row.iter_mut().skip(col).zip(sums) {
+        *o += s;
+    }
+}
+
+#[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+mod detect {
+    use core::sync::atomic::{AtomicBool, AtomicU8, Ordering::Relaxed};
+
+    static ALLOWED: AtomicBool = AtomicBool::new(true);
+    /// 0: not looked yet, 1: no AVX-512F, 2: AVX-512F.
+    static FOUND: AtomicU8 = AtomicU8::new(0);
+
+    pub fn wide_vectors() -> bool {
+        if !ALLOWED.load(Relaxed) {
+            return false;
+        }
+        match FOUND.load(Relaxed) {
+            0 => {
+                let found = avx512f();
+                FOUND.store(if found { 2 } else { 1 }, Relaxed);
+                found
+            }
+            state => state == 2,
+        }
+    }
+
+    pub fn allow_wide_vectors(allow: bool) {
+        ALLOWED.store(allow, Relaxed);
+    }
+
+    /// AVX-512F in the CPU (CPUID leaf 7) and its state saved by the OS (XCR0: SSE, AVX,
+    /// opmask, upper halves of ZMM0-15, ZMM16-31), as the Intel SDM asks software to check.
+    fn avx512f() -> bool {
+        use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+        #[allow(unsafe_code)]
+        // SAFETY: CPUID exists on every x86-64 CPU; XGETBV runs only once CPUID has said the
+        // OS enabled it (OSXSAVE).
+        unsafe {
+            if __cpuid(0).eax < 7 || __cpuid(1).ecx & (1 << 27) == 0 {
+                return false;
+            }
+            _xgetbv(0) & 0xE6 == 0xE6 && __cpuid_count(7, 0).ebx & (1 << 16) != 0
+        }
+    }
+}
+
+/// Whether the MLP kernels run sixteen lanes per instruction: an x86-64 CPU with AVX-512F
+/// (detected once, at the first call) unless [`allow_wide_vectors`] turned it off. The results
+/// are the same bits either way; only the speed differs.
+pub fn wide_vectors() -> bool {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    return detect::wide_vectors();
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx")))]
+    false
+}
+
+/// Lets the MLP kernels use AVX-512 where the CPU has it (the default), or keeps them to
+/// eight lanes: for benchmarks that compare the two and tests that prove them equal. Takes
+/// effect for every thread from their next kernel call.
+pub fn allow_wide_vectors(allow: bool) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    detect::allow_wide_vectors(allow);
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx")))]
+    let _ = allow;
+}
+
+/// The kernels with AVX-512F, sixteen lanes per instruction. A 64-lane row is only four
+/// registers, so each tile computes several outputs (or inputs) at once: at least eight
+/// independent accumulators keep both FMA pipes busy (four cycles of latency, two per cycle;
+/// sixteen measured 2 to 4 % faster), and each loaded row is shared among them. Every output
+/// still sums its terms in the order of the narrow kernels, so the bits are theirs.
+#[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+#[allow(unsafe_code)] // Pointer loads and stores of the rows, within their slices.
+mod avx512 {
+    use super::{LANES, Row, add_columns};
+    use core::arch::x86_64::{
+        __m256, __m512, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
+        _mm256_storeu_ps, _mm512_fmadd_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
+        _mm512_storeu_ps,
+    };
+
+    /// Registers per lane-row.
+    const Z: usize = LANES / 16;
+    const _: () = assert!(LANES.is_multiple_of(16));
+
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn load_row(row: &Row) -> [__m512; Z] {
+        // SAFETY: register `i` reads floats 16 i .. 16 i + 16 of the row's LANES.
+        core::array::from_fn(|i| unsafe { _mm512_loadu_ps(row.as_ptr().add(16 * i)) })
+    }
+
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn store_row(row: &mut Row, v: [__m512; Z]) {
+        for (i, vi) in v.into_iter().enumerate() {
+            // SAFETY: register `i` writes floats 16 i .. 16 i + 16 of the row's LANES.
+            unsafe { _mm512_storeu_ps(row.as_mut_ptr().add(16 * i), vi) };
+        }
+    }
+
+    /// [`super::combine_rows`], `T` outputs at a time (the last one to three together).
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn combine_rows(
+        out: &mut [Row],
+        inputs: &[Row],
+        coef: impl Fn(usize, usize) -> f32,
+    ) {
+        const T: usize = 4;
+        let (tiles, rest) = out.as_chunks_mut::<T>();
+        for (t, tile) in tiles.iter_mut().enumerate() {
+            combine_tile(tile, T * t, inputs, &coef);
+        }
+        let n0 = T * tiles.len();
+        match rest {
+            [a, b, c] => {
+                let mut tile = [*a, *b, *c];
+                combine_tile(&mut tile, n0, inputs, &coef);
+                [*a, *b, *c] = tile;
+            }
+            [a, b] => {
+                let mut tile = [*a, *b];
+                combine_tile(&mut tile, n0, inputs, &coef);
+                [*a, *b] = tile;
+            }
+            [a] => combine_tile(core::array::from_mut(a), n0, inputs, &coef),
+            _ => {}
+        }
+    }
+
+    /// Outputs `n0 .. n0 + K` (`out`): `K` times [`Z`] accumulators, each input row loaded
+    /// once for all of them.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn combine_tile<const K: usize>(
+        out: &mut [Row; K],
+        n0: usize,
+        inputs: &[Row],
+        coef: &impl Fn(usize, usize) -> f32,
+    ) {
+        let mut acc: [[__m512; Z]; K] = core::array::from_fn(|t| load_row(&out[t]));
+        for (j, xj) in inputs.iter().enumerate() {
+            let x = load_row(xj);
+            for (t, a) in acc.iter_mut().enumerate() {
+                let c = _mm512_set1_ps(coef(n0 + t, j));
+                for i in 0..Z {
+                    a[i] = _mm512_fmadd_ps(c, x[i], a[i]);
+                }
+            }
+        }
+        for (o, a) in out.iter_mut().zip(acc) {
+            store_row(o, a);
+        }
+    }
+
+    /// [`super::outer_products`]: 64 columns for four inputs at a time, then 32 for eight, 16
+    /// for sixteen, and the last 8 columns (AVX registers) for sixteen: 16 accumulators each.
+    /// The twin of `outer_products_narrow`'s loop, with tiles twice as deep.
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn outer_products(
+        coefs: &[Row],
+        dyt: &[f32],
+        stride: usize,
+        outputs: usize,
+        dst: &mut [f32],
+    ) {
+        let mut col = 0;
+        while col + 64 <= stride {
+            wide_tiles::<4, 4>(coefs, dyt, stride, outputs, col, dst);
+            col += 64;
+        }
+        while col + 32 <= stride {
+            wide_tiles::<8, 2>(coefs, dyt, stride, outputs, col, dst);
+            col += 32;
+        }
+        while col + 16 <= stride {
+            wide_tiles::<16, 1>(coefs, dyt, stride, outputs, col, dst);
+            col += 16;
+        }
+        while col < stride {
+            let mut k = 0;
+            while k + 16 <= coefs.len() {
+                eight_column_tile::<16>(coefs, k, dyt, stride, outputs, col, dst);
+                k += 16;
+            }
+            while k < coefs.len() {
+                eight_column_tile::<1>(coefs, k, dyt, stride, outputs, col, dst);
+                k += 1;
+            }
+            col += 8;
+        }
+    }
+
+    /// The `16 V` columns from `col` for every input, `K` inputs at a time (the rest one by
+    /// one).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn wide_tiles<const K: usize, const V: usize>(
+        coefs: &[Row],
+        dyt: &[f32],
+        stride: usize,
+        outputs: usize,
+        col: usize,
+        dst: &mut [f32],
+    ) {
+        let mut k = 0;
+        while k + K <= coefs.len() {
+            wide_tile::<K, V>(coefs, k, dyt, stride, outputs, col, dst);
+            k += K;
+        }
+        while k < coefs.len() {
+            wide_tile::<1, V>(coefs, k, dyt, stride, outputs, col, dst);
+            k += 1;
+        }
+    }
+
+    /// Inputs `k0 .. k0 + K`, the `16 V` columns from `col`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn wide_tile<const K: usize, const V: usize>(
+        coefs: &[Row],
+        k0: usize,
+        dyt: &[f32],
+        stride: usize,
+        outputs: usize,
+        col: usize,
+        dst: &mut [f32],
+    ) {
+        let coefs = &coefs[k0..k0 + K];
+        let mut acc = [[_mm512_setzero_ps(); V]; K];
+        for l in 0..LANES {
+            let start = l * stride + col;
+            let row = &dyt[start..start + 16 * V];
+            // SAFETY: register `i` reads floats 16 i .. 16 i + 16 of `row`.
+            let y: [__m512; V] =
+                core::array::from_fn(|i| unsafe { _mm512_loadu_ps(row.as_ptr().add(16 * i)) });
+            for (a, coef) in acc.iter_mut().zip(coefs) {
+                let c = _mm512_set1_ps(coef[l]);
+                for i in 0..V {
+                    a[i] = _mm512_fmadd_ps(c, y[i], a[i]);
+                }
+            }
+        }
+        for (t, a) in acc.into_iter().enumerate() {
+            let mut sums = [0.0f32; 64];
+            for (i, ai) in a.into_iter().enumerate() {
+                // SAFETY: register `i` writes floats 16 i .. 16 i + 16 < 64 of `sums`.
+                unsafe { _mm512_storeu_ps(sums.as_mut_ptr().add(16 * i), ai) };
+            }
+            add_columns(&sums[..16 * V], k0 + t, outputs, col, dst);
+        }
+    }
+
+    /// Inputs `k0 .. k0 + K`, the 8 columns from `col`, in AVX registers.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn eight_column_tile<const K: usize>(
+        coefs: &[Row],
+        k0: usize,
+        dyt: &[f32],
+        stride: usize,
+        outputs: usize,
+        col: usize,
+        dst: &mut [f32],
+    ) {
+        let coefs = &coefs[k0..k0 + K];
+        let mut acc = [_mm256_setzero_ps(); K];
+        for l in 0..LANES {
+            let start = l * stride + col;
+            let row = &dyt[start..start + 8];
+            // SAFETY: reads the 8 floats of `row`.
+            let y: __m256 = unsafe { _mm256_loadu_ps(row.as_ptr()) };
+            for (a, coef) in acc.iter_mut().zip(coefs) {
+                *a = _mm256_fmadd_ps(_mm256_set1_ps(coef[l]), y, *a);
+            }
+        }
+        for (t, a) in acc.into_iter().enumerate() {
+            let mut sums = [0.0f32; 8];
+            // SAFETY: writes the 8 floats of `sums`.
+            unsafe { _mm256_storeu_ps(sums.as_mut_ptr(), a) };
+            add_columns(&sums, k0 + t, outputs, col, dst);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -198,6 +620,70 @@ mod tests {
                     "{len}: {got} != {expected}"
                 );
             }
+        }
+    }
+
+    /// Random rows of awkward values, for the kernels' wide-against-narrow tests.
+    fn awkward_rows<const N: usize>(rng: &mut Rng) -> [Row; N] {
+        core::array::from_fn(|_| core::array::from_fn(|_| awkward(rng)))
+    }
+
+    fn same_bits(a: &[f32], b: &[f32]) -> bool {
+        a.iter()
+            .zip(b)
+            .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
+    }
+
+    #[test]
+    fn the_wide_kernels_give_the_bits_of_the_narrow_ones() {
+        if !wide_vectors() {
+            return; // Nothing to compare on a CPU without AVX-512.
+        }
+        let mut rng = Rng::new(13);
+        let inputs: [Row; 19] = awkward_rows(&mut rng);
+        let weights: [f32; 19 * 19] = core::array::from_fn(|_| awkward(&mut rng));
+        for (outputs, used) in [(1, 19), (2, 3), (3, 19), (16, 19), (19, 1), (19, 19)] {
+            let coef = |n: usize, j: usize| weights[j * outputs + n];
+            let start: [Row; 19] = awkward_rows(&mut rng);
+            let mut wide = start;
+            #[allow(unsafe_code)]
+            // SAFETY: `wide_vectors` said the CPU runs AVX-512F.
+            unsafe {
+                avx512::combine_rows(&mut wide[..outputs], &inputs[..used], coef)
+            };
+            let mut narrow = start;
+            combine_rows_narrow(&mut narrow[..outputs], &inputs[..used], coef);
+            assert!(
+                same_bits(wide.as_flattened(), narrow.as_flattened()),
+                "{outputs} {used}"
+            );
+        }
+        // Strides that reach every tile: 64, 32, 16 and 8 columns, and 8 inputs at a time.
+        for (outputs, used) in [
+            (3, 19),
+            (8, 9),
+            (16, 17),
+            (24, 2),
+            (40, 19),
+            (64, 1),
+            (120, 3),
+            (128, 19),
+        ] {
+            let stride = usize::div_ceil(outputs, 8) * 8;
+            let mut dyt = [0.0f32; LANES * 128];
+            for v in dyt[..LANES * stride].iter_mut() {
+                *v = awkward(&mut rng);
+            }
+            let start: [f32; 19 * 128] = core::array::from_fn(|_| awkward(&mut rng));
+            let mut wide = start;
+            #[allow(unsafe_code)]
+            // SAFETY: as above.
+            unsafe {
+                avx512::outer_products(&inputs[..used], &dyt, stride, outputs, &mut wide)
+            };
+            let mut narrow = start;
+            outer_products_narrow(&inputs[..used], &dyt, stride, outputs, &mut narrow);
+            assert!(same_bits(&wide, &narrow), "{outputs} {used}");
         }
     }
 }

@@ -24,6 +24,7 @@ pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
+pub use fused::{allow_wide_vectors, wide_vectors};
 pub use glam;
 pub use replacement::Ingested;
 pub use trainer::{Executor, Sequential, StepReport, Trainer};

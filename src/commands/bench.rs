@@ -46,6 +46,10 @@ pub struct BenchArgs {
     /// count (profile_<threads>t.png) into this folder.
     #[arg(long, requires = "profile")]
     out: Option<PathBuf>,
+    /// Keep the MLP kernels to eight lanes (AVX2) on a CPU with AVX-512, to compare the two
+    /// on one machine (the results are the same bits either way).
+    #[arg(long)]
+    no_avx512: bool,
 }
 
 pub fn run(args: &BenchArgs) -> CliResult {
@@ -62,6 +66,15 @@ pub fn run(args: &BenchArgs) -> CliResult {
         std::fs::create_dir_all(out).map_err(|e| format!("--out {}: {e}", out.display()))?;
     }
     println!("{}", machine::cpu_summary());
+    orbit_nerf_core::allow_wide_vectors(!args.no_avx512);
+    println!(
+        "MLP kernels: {}",
+        if orbit_nerf_core::wide_vectors() {
+            "16 lanes per instruction (AVX-512)"
+        } else {
+            "8 lanes per instruction or fewer"
+        }
+    );
     let mut base = config_for_data(args.preset.as_deref(), &args.data, args.config.as_deref())?;
     let data = DataArgs {
         data: args.data.clone(),

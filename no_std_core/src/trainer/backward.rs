@@ -1,6 +1,8 @@
 //! A chunk's training pass: forward, loss and the hand-written backward pass.
 
-use super::chunk::{ChunkReport, density_forward, embedding_of, ray_runs, split_rows};
+use super::chunk::{
+    ChunkReport, density_forward, embedding_of, ray_runs, row_scale_weights, split_rows,
+};
 use super::*;
 
 impl Chunk<'_> {
@@ -265,10 +267,10 @@ impl Chunk<'_> {
             let mut d_feat = [0.0f32; 4 * 64];
             let pose = shared.pose_gradients;
             let extent = shared.aabb.max - shared.aabb.min;
-            let per_scale = c.features as usize;
+            let weights = row_scale_weights(shared);
             for l in 0..lanes {
                 for k in 0..features {
-                    d_feat[k] = grad.feats[k][l] * shared.scale_weights[k / per_scale];
+                    d_feat[k] = grad.feats[k][l] * weights[k];
                 }
                 let x = Vec3::from_array(self.positions[base + l]);
                 let u = shared.aabb.normalise(x);

@@ -137,11 +137,12 @@ impl Chunk<'_> {
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let mut rows = split_rows(c, self.activations);
+            // Only the density: no backward pass reads this pass's plane values.
             density_forward(
                 shared,
                 &self.positions[base..base + lanes],
                 &mut rows,
-                self.plane_values,
+                &mut [],
             );
             for l in 0..lanes {
                 self.sigma[base + l] = field::trunc_exp(rows.density_out[0][l]);
@@ -282,7 +283,7 @@ impl Chunk<'_> {
     ) {
         for (points, sigma) in points.chunks(LANES).zip(sigma.chunks_mut(LANES)) {
             let mut rows = split_rows(shared.config, self.activations);
-            density_forward(shared, points, &mut rows, self.plane_values);
+            density_forward(shared, points, &mut rows, &mut []);
             for (l, s) in sigma.iter_mut().enumerate() {
                 *s = field::trunc_exp(rows.density_out[0][l]);
             }
@@ -324,7 +325,7 @@ impl Chunk<'_> {
                 *p = (shared.aabb.min + (cell + jitter) * size).to_array();
             }
             let mut rows = split_rows(c, self.activations);
-            density_forward(shared, &positions[..lanes], &mut rows, self.plane_values);
+            density_forward(shared, &positions[..lanes], &mut rows, &mut []);
             for l in 0..lanes {
                 let d = &mut cells[base + l];
                 let sigma = field::trunc_exp(rows.density_out[0][l]);
@@ -402,7 +403,7 @@ pub(super) fn density_forward(
 }
 
 /// Plane features of up to `LANES` positions into `feats` (unused lanes zero), and each
-/// lane's per-plane values into `values` (lane-major).
+/// lane's per-plane values into `values` (lane-major; empty when no backward pass follows).
 fn load_features(
     shared: &Shared<'_>,
     positions: &[[f32; 3]],
@@ -414,18 +415,30 @@ fn load_features(
     for row in feats.iter_mut() {
         row.fill(0.0);
     }
-    for (l, (p, values)) in positions
-        .iter()
-        .zip(values.chunks_exact_mut(3 * n))
-        .enumerate()
-    {
+    let weights = row_scale_weights(shared);
+    for (l, p) in positions.iter().enumerate() {
+        let values = values
+            .get_mut(l * 3 * n..(l + 1) * 3 * n)
+            .unwrap_or_default();
         let u = shared.aabb.normalise(Vec3::from_array(*p));
         field::planes_forward(shared.planes, shared.geometry, u, &mut out[..n], values);
-        let f = shared.geometry.features;
         for k in 0..n {
-            feats[k][l] = out[k] * shared.scale_weights[k / f];
+            feats[k][l] = out[k] * weights[k];
         }
     }
+}
+
+/// Each feature row's scale weight (coarse to fine), looked up once per chunk instead of
+/// dividing the row index per sample.
+pub(super) fn row_scale_weights(shared: &Shared<'_>) -> [f32; 4 * 64] {
+    let per_scale = shared.geometry.features.max(1);
+    core::array::from_fn(|k| {
+        shared
+            .scale_weights
+            .get(k / per_scale)
+            .copied()
+            .unwrap_or(0.0)
+    })
 }
 
 fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
