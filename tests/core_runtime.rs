@@ -11,9 +11,9 @@ use orbit_nerf_core::{
     Camera, Config, Error, Ingested, MemoryPlan, Pose, Replacement, Sequential, Trainer,
 };
 use orbit_nerf_host::dataset::{self, Dataset};
-use orbit_nerf_host::formats;
 use orbit_nerf_host::sweep::results::fnv1a;
 use orbit_nerf_host::train::{self, RayonExecutor};
+use orbit_nerf_host::{formats, report};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::path::Path;
@@ -213,30 +213,14 @@ fn profiling_changes_no_bit_and_times_every_stage() {
         }
         let steps_ns = start.elapsed().as_nanos() as u64;
         let frame = &data.frames[test_idx[0]];
-        let mut embedding = vec![0.0f32; 4];
-        trainer.mean_embedding(&mut embedding);
+        let mut mean = vec![0.0f32; 4];
+        trainer.mean_embedding(&mut mean);
         let mut image = vec![0.0f32; frame.camera.pixel_count() * 3];
         let start = std::time::Instant::now();
-        let w = frame.camera.width as u32;
+        let (embedding, pose) =
+            train::fit_held_out(&mut trainer, &executor, frame, 5, true, &mean).unwrap();
         trainer
-            .fit_embedding(
-                &executor,
-                &frame.camera,
-                &frame.pose,
-                &frame.pixels,
-                (0, w / 2),
-                5,
-                &mut embedding,
-            )
-            .unwrap();
-        trainer
-            .render(
-                &executor,
-                &frame.camera,
-                &frame.pose,
-                &embedding,
-                &mut image,
-            )
+            .render(&executor, &frame.camera, &pose, &embedding, &mut image)
             .unwrap();
         let view_ns = start.elapsed().as_nanos() as u64;
         let dir = tempfile::tempdir().unwrap();
@@ -735,13 +719,16 @@ fn training_reduces_the_loss_and_renders_the_held_out_views() {
     )
     .unwrap();
     let executor = RayonExecutor::new(2).unwrap();
+    let score = |trainer: &mut Trainer<'_>| {
+        train::evaluate(trainer, &executor, data, &test_idx[..3], 0, false, None).unwrap()
+    };
     let first = trainer.step(&executor).unwrap().mse;
-    let before = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], 0, None).unwrap();
+    let before = score(&mut trainer);
     let mut last = first;
     for _ in 1..300 {
         last = trainer.step(&executor).unwrap().mse;
     }
-    let after = train::evaluate(&mut trainer, &executor, data, &test_idx[..3], 0, None).unwrap();
+    let after = score(&mut trainer);
     assert!(last < first * 0.2, "loss {first} -> {last}");
     for (b, a) in before.iter().zip(&after) {
         assert!(
@@ -755,6 +742,25 @@ fn training_reduces_the_loss_and_renders_the_held_out_views() {
     assert!(
         trainer.occupancy_fraction() < 0.5,
         "occupancy did not prune empty space"
+    );
+    // `--align-poses`: a held-out view whose label is turned by 2 degrees gets back to
+    // within half of that by fitting its pose correction on its left half.
+    let mut frame = data.frames[test_idx[0]].clone();
+    let exact = frame.pose;
+    frame.pose.rotation =
+        Mat3::from_axis_angle(Vec3::new(0.6, 0.8, 0.0), 2f32.to_radians()) * frame.pose.rotation;
+    let mut mean = vec![0.0f32; config.embedding_dim as usize];
+    trainer.mean_embedding(&mut mean);
+    let (_, aligned) =
+        train::fit_held_out(&mut trainer, &executor, &frame, 100, true, &mean).unwrap();
+    let (_, unaligned) =
+        train::fit_held_out(&mut trainer, &executor, &frame, 100, false, &mean).unwrap();
+    let error = |pose: &orbit_nerf_core::Pose| report::rotation_error_deg(pose, &exact);
+    assert_eq!(unaligned, frame.pose);
+    assert!(
+        error(&aligned) < 1.0,
+        "2 degrees -> {} after alignment",
+        error(&aligned)
     );
 }
 

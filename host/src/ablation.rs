@@ -235,6 +235,7 @@ impl Experiment<'_> {
                 dataset,
                 self.test_idx,
                 self.fit_steps,
+                false,
                 None,
             )?;
             let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();

@@ -1,12 +1,13 @@
 //! Training on the host: the model config as a file, a rayon executor for the core's chunks,
 //! loading a dataset into frame slots, evaluation renders, and checkpoints of the core's state.
 
+use crate::ablation::corrected_pose;
 use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
 use crate::report::{ViewFigures, ViewMetrics, score_view};
-use orbit_nerf_core::{Config, Executor, Trainer};
+use orbit_nerf_core::{Config, Executor, Pose, PoseCorrection, Trainer};
 use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
@@ -359,6 +360,46 @@ pub fn view_figures(scores: &[ViewScore]) -> Vec<ViewFigures> {
         .collect()
 }
 
+/// A held-out view's appearance embedding and the pose to render it at: the embedding fitted
+/// on the view's left half for `fit_steps` steps from `mean` (the mean training embedding),
+/// and with `align_pose` the label corrected by a pose correction fitted with it
+/// (`Trainer::fit_view`, BARF's test-time alignment); otherwise the label itself (the
+/// paper's protocol).
+pub fn fit_held_out<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    frame: &Frame,
+    fit_steps: u32,
+    align_pose: bool,
+    mean: &[f32],
+) -> std::result::Result<(Vec<f32>, Pose), orbit_nerf_core::Error> {
+    let config = *trainer.config();
+    let dim = config.embedding_dim as usize;
+    let mut params = mean.to_vec();
+    params.resize(config.frame_params(), 0.0);
+    if fit_steps == 0 || (dim == 0 && !align_pose) {
+        return Ok((params[..dim].to_vec(), frame.pose));
+    }
+    let half = frame.camera.width as u32 / 2;
+    trainer.fit_view(
+        executor,
+        &frame.camera,
+        &frame.pose,
+        &frame.pixels,
+        (0, half),
+        fit_steps,
+        align_pose,
+        &mut params,
+    )?;
+    let pose = if align_pose {
+        let correction = PoseCorrection::from_params(&params[dim..], config.length_unit());
+        corrected_pose(&frame.pose, &correction, config.pose_pivot_point())
+    } else {
+        frame.pose
+    };
+    Ok((params[..dim].to_vec(), pose))
+}
+
 /// Evaluate held-out views as in the paper and K-Planes: with the field frozen, start a
 /// fresh appearance embedding at the mean of the training embeddings, fit it for
 /// `fit_steps` steps on the left half of the view's pixels (skipped without embeddings),
@@ -373,6 +414,7 @@ pub fn evaluate<E: Executor>(
     dataset: &Dataset,
     indices: &[usize],
     fit_steps: u32,
+    align_poses: bool,
     render_dir: Option<&Path>,
 ) -> Result<Vec<ViewScore>> {
     let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
@@ -386,23 +428,12 @@ pub fn evaluate<E: Executor>(
             .ok_or_else(|| HostError::invalid(&dataset.source, format!("no view {index}")))?;
         let start = Instant::now();
         let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
-        let mut embedding = mean.clone();
-        if !embedding.is_empty() && fit_steps > 0 {
-            trainer
-                .fit_embedding(
-                    executor,
-                    &frame.camera,
-                    &frame.pose,
-                    &frame.pixels,
-                    (0, w / 2),
-                    fit_steps,
-                    &mut embedding,
-                )
+        let (embedding, pose) =
+            fit_held_out(trainer, executor, frame, fit_steps, align_poses, &mean)
                 .map_err(|e| core_error(Path::new(&frame.name), e))?;
-        }
         let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
         let samples_per_ray = trainer
-            .render(executor, &frame.camera, &frame.pose, &embedding, &mut out)
+            .render(executor, &frame.camera, &pose, &embedding, &mut out)
             .map_err(|e| core_error(Path::new(&frame.name), e))?;
         let seconds = start.elapsed().as_secs_f64();
         let metrics = match score_view(

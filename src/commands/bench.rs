@@ -214,21 +214,10 @@ fn profile_report(
     let start = Instant::now();
     for &index in timed.views {
         let frame = &timed.dataset.frames[index];
-        let mut embedding = mean.clone();
-        let width = frame.camera.width as u32;
-        if !embedding.is_empty() {
-            trainer.fit_embedding(
-                executor,
-                &frame.camera,
-                &frame.pose,
-                &frame.pixels,
-                (0, width / 2),
-                FIT_STEPS,
-                &mut embedding,
-            )?;
-        }
+        let (embedding, pose) =
+            train::fit_held_out(trainer, executor, frame, FIT_STEPS, false, &mean)?;
         let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
-        trainer.render(executor, &frame.camera, &frame.pose, &embedding, &mut out)?;
+        trainer.render(executor, &frame.camera, &pose, &embedding, &mut out)?;
     }
     let profile = trainer.profile();
     let view = Breakdown {

@@ -29,6 +29,10 @@ pub struct EvalArgs {
     /// Steps fitting each view's appearance embedding on its left half (0 to 100000).
     #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]
     fit_steps: u32,
+    /// Also fit each view's pose correction in those steps and score it at its corrected
+    /// label (BARF's test-time alignment), instead of at its label.
+    #[arg(long)]
+    align_poses: bool,
     /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
     /// machine's available memory. Checked before anything large is allocated.
     #[arg(long, value_parser = values::byte_size)]
@@ -47,7 +51,7 @@ pub fn run(args: &EvalArgs) -> CliResult {
         args.threads,
         &dataset,
         &test_idx,
-        args.fit_steps,
+        (args.fit_steps, args.align_poses),
         args.renders.as_deref(),
     )?;
     let mean = print_scores(&scores);

@@ -80,6 +80,10 @@ struct ModelArgs {
     /// Evaluation: steps fitting a held-out view's embedding on its left half (0 to 100000).
     #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]
     fit_steps: u32,
+    /// Evaluation: also fit each held-out view's pose correction in those steps and score it
+    /// at its corrected label (BARF's test-time alignment), instead of at its label.
+    #[arg(long)]
+    align_poses: bool,
     /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
     /// machine's available memory. Checked before anything large is allocated.
     #[arg(long, value_parser = values::byte_size)]
@@ -320,19 +324,26 @@ fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> CliResult 
 }
 
 /// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
-/// fitting each view's embedding for `fit_steps`; renders go to `renders` when given.
+/// fitting each view's embedding (and with `align_poses` its pose correction) for
+/// `fit_steps`; renders go to `renders` when given.
 fn evaluate_checkpoint(
     path: &Path,
     threads: usize,
     dataset: &Dataset,
     views: &[usize],
-    fit_steps: u32,
+    (fit_steps, align_poses): (u32, bool),
     renders: Option<&Path>,
 ) -> Fallible<Vec<ViewScore>> {
     let executor = RayonExecutor::new(threads)?;
     with_checkpoint(path, |trainer| {
         Ok(evaluate(
-            trainer, &executor, dataset, views, fit_steps, renders,
+            trainer,
+            &executor,
+            dataset,
+            views,
+            fit_steps,
+            align_poses,
+            renders,
         )?)
     })
 }

@@ -80,7 +80,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
         args.threads,
         &dataset,
         &views,
-        args.fit_steps,
+        (args.fit_steps, false),
         Some(&args.out),
     )?;
     for s in &scores {

@@ -143,6 +143,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
             &dataset,
             &test_idx,
             args.model.fit_steps,
+            args.model.align_poses,
             Some(&args.out.join("renders")),
         )?;
         let mean = print_scores(&scores);

@@ -456,7 +456,7 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
             scene_box: SceneBoxOrigin::Stated("the stream's config".into()),
             background: info.background,
         };
-        let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, None)?;
+        let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, false, None)?;
         per_view.extend(scores.iter().map(|s| s.metrics));
     }
     Ok((report::mean_metrics(&per_view), per_view.len()))

@@ -70,28 +70,34 @@ impl Chunk<'_> {
         };
     }
 
-    /// Move each ray's origin and direction gradients to its frame's pose correction.
+    /// Move each ray's origin and direction gradients to its frame's pose correction (the
+    /// fitted view's, in the first frame-gradient slot, while fitting one).
     fn fold_ray_gradients(&mut self, shared: &Shared<'_>, rays: usize) {
         let c = shared.config;
         let n = c.frame_params();
         let dim = c.embedding_dim as usize;
-        let Embedding::PerFrame(params) = shared.embedding else {
-            return;
-        };
         let pivot = c.pose_pivot_point();
         for r in 0..rays {
             let ray = self.first_ray + r;
-            let slot = shared.ray_frames[ray] as usize;
+            // The correction's parameters, the label's camera centre and the slot.
+            let (params, center, slot) = match (shared.fit_pose, shared.embedding) {
+                (Some((params, center)), _) => (params, Some(center), 0),
+                (None, Embedding::PerFrame(all)) => {
+                    let slot = shared.ray_frames[ray] as usize;
+                    let params: [f32; POSE_PARAMS] = core::array::from_fn(|i| {
+                        all.get(slot * n + dim + i).copied().unwrap_or(0.0)
+                    });
+                    (params, shared.frame_meta.get(slot).map(|m| m.center), slot)
+                }
+                (None, Embedding::Fixed(_)) => return,
+            };
             let g = &self.ray_grads[r * 6..r * 6 + 6];
-            let correction = PoseCorrection::from_params(
-                &params[slot * n + dim..(slot + 1) * n],
-                shared.length_unit,
-            );
+            let correction = PoseCorrection::from_params(&params, shared.length_unit);
             let label = Vec3::from_array(shared.rays[ray].label_direction);
             let mut d_v = correction.rotation_vjp(label, Vec3::new(g[3], g[4], g[5]));
             // With a pivot the origin is p + R (c - p) + u: the rotation also moves it.
-            if let (Some(p), Some(meta)) = (pivot, shared.frame_meta.get(slot)) {
-                let arm = Vec3::from_array(meta.center) - p;
+            if let (Some(p), Some(center)) = (pivot, center) {
+                let arm = Vec3::from_array(center) - p;
                 d_v += correction.rotation_vjp(arm, Vec3::new(g[0], g[1], g[2]));
             }
             let dst = &mut self.frame_grads[slot * n + dim..(slot + 1) * n];
@@ -188,7 +194,7 @@ impl Chunk<'_> {
             for gi in 0..geo_len {
                 grad.density_out[1 + gi] = grad.colour_geo[gi];
             }
-            let pose = shared.pose_gradients && !shared.fit_embedding;
+            let pose = shared.pose_gradients;
             let mut sum = [0.0f32; MAX_COLOUR_HIDDEN];
             let sum = &mut sum[..hidden];
             for (start, end) in ray_runs(&self.sample_ray[base..base + lanes]) {
@@ -236,7 +242,7 @@ impl Chunk<'_> {
                 }
             }
             laps.lap(Stage::ColourBackward, &mut self.times);
-            if shared.fit_embedding {
+            if shared.fit_embedding && !shared.pose_gradients {
                 continue;
             }
             backward_layer(
@@ -260,9 +266,17 @@ impl Chunk<'_> {
             );
             laps.lap(Stage::DensityBackward, &mut self.times);
 
-            let mut sink = PlaneGrads {
-                grads: self.plane_grads,
-                touched: self.touched,
+            // A view fit only wants the spatial gradient: the frozen planes get none.
+            let mut sink = if shared.fit_embedding {
+                PlaneGrads {
+                    grads: &mut [],
+                    touched: &mut [],
+                }
+            } else {
+                PlaneGrads {
+                    grads: self.plane_grads,
+                    touched: self.touched,
+                }
             };
             let mut d_feat = [0.0f32; 4 * 64];
             let pose = shared.pose_gradients;

@@ -6,17 +6,23 @@ use super::*;
 /// One chunk's share of a density query: its points, their outputs and the chunk.
 type DensityJob<'q, 'a> = (&'q [[f32; 3]], &'q mut [f32], &'q mut Chunk<'a>);
 
-/// Adam learning rate of `fit_embedding` (only a few dozen steps, on one vector).
+/// Adam learning rate of `fit_view`'s embedding (only a few dozen steps, on one vector); its
+/// pose correction learns at this times `Config::pose_lr_factor`, as in training.
 const FIT_LEARNING_RATE: f32 = 0.05;
 
 impl<'a> Trainer<'a> {
-    /// Fit an appearance embedding to one image with the field frozen (the paper's and
-    /// K-Planes' evaluation): `steps` Adam steps, each on a batch of rays through the pixels
-    /// in columns `columns.0..columns.1` (the left half, in the paper). `embedding` holds the
-    /// starting point (the mean training embedding) and receives the result. Returns the
-    /// last step's mean squared error.
+    /// Fit a held-out view's frame parameters to its image with the field frozen: its
+    /// appearance embedding (the paper's and K-Planes' evaluation) and, with `align_pose`,
+    /// its pose correction too (BARF's test-time alignment: the view is then scored at its
+    /// corrected label, not at the label's noise; the correction learns at the embedding's
+    /// rate times `pose_lr_factor`, about `pose_pivot`, as in training). `steps` Adam steps, each on a batch of rays through the pixels in columns
+    /// `columns.0..columns.1` (the left half, in the paper). `params` (`frame_params()`
+    /// values: the embedding, then the correction) holds the starting point (the mean
+    /// training embedding, no correction) and receives the result; the corrected pose is
+    /// `PoseCorrection::from_params(&params[embedding_dim..], length_unit)` applied to
+    /// `pose`. Returns the last step's mean squared error.
     #[allow(clippy::too_many_arguments)]
-    pub fn fit_embedding<E: Executor>(
+    pub fn fit_view<E: Executor>(
         &mut self,
         executor: &E,
         camera: &Camera,
@@ -24,16 +30,17 @@ impl<'a> Trainer<'a> {
         pixels: &[u8],
         columns: (u32, u32),
         steps: u32,
-        embedding: &mut [f32],
+        align_pose: bool,
+        params: &mut [f32],
     ) -> Result<f32, Error> {
         self.require_training()?;
         let c = self.config;
-        let dim = c.embedding_dim as usize;
-        if embedding.len() != dim {
+        let (dim, n) = (c.embedding_dim as usize, c.frame_params());
+        if params.len() != n {
             return Err(Error::BufferSize {
-                what: "embedding",
-                expected: dim,
-                got: embedding.len(),
+                what: "frame parameters",
+                expected: n,
+                got: params.len(),
             });
         }
         if !camera.is_valid() || !pose.is_finite() {
@@ -54,52 +61,108 @@ impl<'a> Trainer<'a> {
             return Err(Error::InvalidFrame { field: "columns" });
         }
         let mut laps = self.profile.laps();
-        let (mut m, mut v) = ([0.0f32; 128], [0.0f32; 128]);
+        const MOST: usize = 128 + POSE_PARAMS;
+        let (mut m, mut v) = ([0.0f32; MOST], [0.0f32; MOST]);
         let mut mse = 0.0;
         for step in 0..steps {
-            for r in 0..c.rays_per_batch as usize {
-                let bits = rng::hash(c.seed, domain::FIT, step as u64, r as u64);
-                let i = x0 + rng::below(bits, x1 - x0);
-                let j = rng::below(bits.rotate_right(32), camera.height as u32);
-                let (o, d) = Self::pixel_ray(camera, pose, i, j);
-                let p = (j as usize * camera.width as usize + i as usize) * 3;
-                self.rays[r] = BatchRay {
-                    origin: o.to_array(),
-                    direction: d.to_array(),
-                    target: core::array::from_fn(|ch| pixels[p + ch] as f32 * (1.0 / 255.0)),
-                    label_direction: d.to_array(),
-                    background: c.background,
-                };
-            }
-            let pass = Pass::FitEmbedding { embedding, step };
-            self.with_chunks(pass, c.rays_per_batch as usize, |shared, chunks| {
-                executor.for_each(chunks, |chunk| chunk.train(shared))
-            });
-            let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
-            let only = Some(Stage::FitEmbedding);
-            self.profile
-                .parallel(&mut laps, Bucket::Render, times, only);
-            let mut grad = [0.0f32; 128];
-            let (mut squared_error, mut rays) = (0.0f32, 0u32);
-            for chunk in self.chunks.iter_mut() {
-                for (g, d) in grad.iter_mut().zip(chunk.frame_grads[..dim].iter_mut()) {
-                    *g += *d;
-                    *d = 0.0;
-                }
-                chunk.mlp_grads.fill(0.0);
-                squared_error += chunk.report.squared_error;
-                rays += chunk.report.rays;
-            }
-            mse = squared_error / (3 * rays.max(1)) as f32;
-            if !(mse.is_finite() && grad[..dim].iter().all(|g| g.is_finite())) {
+            let mut grad = [0.0f32; MOST];
+            let squared_error = self.fit_pass(
+                executor,
+                (camera, pose, pixels),
+                (x0, x1),
+                (step, align_pose),
+                params,
+                &mut grad[..n],
+                &mut laps,
+            );
+            mse = squared_error;
+            if !(mse.is_finite() && grad[..n].iter().all(|g| g.is_finite())) {
                 continue;
             }
             let adam = AdamStep::new(&c, FIT_LEARNING_RATE, step + 1);
-            adam.apply(embedding, &grad[..dim], &mut m[..dim], &mut v[..dim]);
+            adam.apply(
+                &mut params[..dim],
+                &grad[..dim],
+                &mut m[..dim],
+                &mut v[..dim],
+            );
+            if align_pose {
+                let adam = AdamStep::new(&c, FIT_LEARNING_RATE * c.pose_lr_factor, step + 1);
+                adam.apply(
+                    &mut params[dim..n],
+                    &grad[dim..n],
+                    &mut m[dim..n],
+                    &mut v[dim..n],
+                );
+            }
         }
         self.profile
             .serial(&mut laps, Bucket::Render, Stage::FitEmbedding);
         Ok(mse)
+    }
+
+    /// One step of [`Trainer::fit_view`] without the update: a batch of rays through the
+    /// view's pixels in `columns` (drawn by `step`), through the pose corrected by `params`
+    /// (with `align_pose`), their loss and its gradient with respect to `params` into `grad`.
+    /// Returns the mean squared error. `laps` charges the chunks' work to the profile.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn fit_pass<E: Executor>(
+        &mut self,
+        executor: &E,
+        (camera, pose, pixels): (&Camera, &Pose, &[u8]),
+        (x0, x1): (u32, u32),
+        (step, align_pose): (u32, bool),
+        params: &[f32],
+        grad: &mut [f32],
+        laps: &mut Laps,
+    ) -> f32 {
+        let c = self.config;
+        let dim = c.embedding_dim as usize;
+        let correction = if align_pose {
+            PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]), self.length_unit)
+        } else {
+            PoseCorrection::default()
+        };
+        let pivot = c.pose_pivot_point();
+        for r in 0..c.rays_per_batch as usize {
+            let bits = rng::hash(c.seed, domain::FIT, step as u64, r as u64);
+            let i = x0 + rng::below(bits, x1 - x0);
+            let j = rng::below(bits.rotate_right(32), camera.height as u32);
+            let (o, d) = Self::pixel_ray(camera, pose, i, j);
+            let p = (j as usize * camera.width as usize + i as usize) * 3;
+            self.rays[r] = BatchRay {
+                origin: correction.origin(o, pivot).to_array(),
+                direction: correction.rotate(d).to_array(),
+                target: core::array::from_fn(|ch| pixels[p + ch] as f32 * (1.0 / 255.0)),
+                label_direction: d.to_array(),
+                background: c.background,
+            };
+        }
+        let pass = Pass::FitView {
+            params,
+            center: pose.center.to_array(),
+            step,
+            align_pose,
+        };
+        self.with_chunks(pass, c.rays_per_batch as usize, |shared, chunks| {
+            executor.for_each(chunks, |chunk| chunk.train(shared))
+        });
+        let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
+        let only = Some(Stage::FitEmbedding);
+        self.profile.parallel(laps, Bucket::Render, times, only);
+        grad.fill(0.0);
+        let (mut squared_error, mut rays) = (0.0f32, 0u32);
+        for chunk in self.chunks.iter_mut() {
+            let n = grad.len();
+            for (g, d) in grad.iter_mut().zip(chunk.frame_grads[..n].iter_mut()) {
+                *g += *d;
+                *d = 0.0;
+            }
+            chunk.mlp_grads.fill(0.0);
+            squared_error += chunk.report.squared_error;
+            rays += chunk.report.rays;
+        }
+        squared_error / (3 * rays.max(1)) as f32
     }
 
     /// Render the image of `camera` at `pose` with a given appearance embedding (length

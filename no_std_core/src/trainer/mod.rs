@@ -15,8 +15,8 @@
 use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
-    MAX_CHUNKS, MAX_COLOUR_HIDDEN, MAX_SCALES, MemoryPlan, MlpLayout, RAY_FLOATS, TexelUpdate,
-    activation_floats, forward_sample_floats, sample_floats, widest_layer,
+    MAX_CHUNKS, MAX_COLOUR_HIDDEN, MAX_SCALES, MemoryPlan, MlpLayout, POSE_PARAMS, RAY_FLOATS,
+    TexelUpdate, activation_floats, forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
@@ -137,8 +137,15 @@ pub struct Trainer<'a> {
 enum Pass<'s> {
     /// A training step: each ray uses its frame's embedding; draws are keyed by the step.
     Train,
-    /// One step of fitting `embedding` to an image with the field frozen.
-    FitEmbedding { embedding: &'s [f32], step: u32 },
+    /// One step of fitting a held-out view's frame parameters (`params`: embedding, then
+    /// pose correction) to its image with the field frozen; `center` is the label's camera
+    /// centre; the pose correction gets gradients with `align_pose`.
+    FitView {
+        params: &'s [f32],
+        center: [f32; 3],
+        step: u32,
+        align_pose: bool,
+    },
     /// Rendering with `embedding`: no jitter, samples at the middle of each marching step.
     Render { embedding: &'s [f32] },
     /// Re-estimating the occupancy grid; draws are keyed by the refresh count.
@@ -178,9 +185,13 @@ struct Shared<'s> {
     draw_counter: u32,
     /// Offset the sample positions along each ray by a seeded fraction of a step.
     jitter: bool,
-    /// Only the fixed embedding is being fitted: the backward pass stops at the colour MLP's
-    /// input and sends the embedding's gradient to the chunk's first frame-gradient slot.
+    /// One view's parameters are being fitted with the field frozen: the embedding's
+    /// gradient goes to the chunk's first frame-gradient slot, and without `fit_pose` the
+    /// backward pass stops at the colour MLP's input.
     fit_embedding: bool,
+    /// While fitting a view's pose correction: its six parameters and the label's camera
+    /// centre (the pose gradients fold into the first frame-gradient slot's correction).
+    fit_pose: Option<([f32; POSE_PARAMS], [f32; 3])>,
     /// The pose corrections learn from this pass: the backward pass carries gradients on to
     /// the rays' origins and directions and folds them into the frames' corrections.
     pose_gradients: bool,
@@ -251,9 +262,25 @@ impl<'a> Trainer<'a> {
 
     /// The read-only view of the model the chunks work with during `pass`.
     fn shared<'s>(&'s self, pass: Pass<'s>) -> Shared<'s> {
+        let fit_pose = match pass {
+            Pass::FitView {
+                params,
+                center,
+                align_pose: true,
+                ..
+            } => {
+                let dim = self.config.embedding_dim as usize;
+                let pose = core::array::from_fn(|i| params.get(dim + i).copied().unwrap_or(0.0));
+                Some((pose, center))
+            }
+            _ => None,
+        };
         let (embedding, draw_counter) = match pass {
             Pass::Train => (Embedding::PerFrame(&*self.frame_params), self.state.step),
-            Pass::FitEmbedding { embedding, step } => (Embedding::Fixed(embedding), step),
+            Pass::FitView { params, step, .. } => {
+                let dim = self.config.embedding_dim as usize;
+                (Embedding::Fixed(params.get(..dim).unwrap_or(&[])), step)
+            }
             Pass::Render { embedding } => (Embedding::Fixed(embedding), 0),
             Pass::Occupancy => (Embedding::Fixed(&[]), self.state.refreshes),
         };
@@ -279,9 +306,12 @@ impl<'a> Trainer<'a> {
             embedding,
             draw_counter,
             jitter: !matches!(pass, Pass::Render { .. }),
-            fit_embedding: matches!(pass, Pass::FitEmbedding { .. }),
-            pose_gradients: matches!(pass, Pass::Train)
-                && self.config.pose_learns_at(self.state.step),
+            fit_embedding: matches!(pass, Pass::FitView { .. }),
+            fit_pose,
+            pose_gradients: match pass {
+                Pass::Train => self.config.pose_learns_at(self.state.step),
+                _ => fit_pose.is_some(),
+            },
             timer: self.profile.timer,
         }
     }

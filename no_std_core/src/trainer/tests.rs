@@ -66,6 +66,68 @@ fn embedding_and_pose_correction_gradients_match_finite_differences() {
     check_frame_gradients(config, 5);
 }
 
+/// A held-out view's fit (`fit_view`): the gradients of its loss with respect to the
+/// embedding and the pose correction, with the field frozen, against finite differences.
+#[test]
+fn view_fit_gradients_match_finite_differences() {
+    for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
+        let mut config = small_config();
+        config.pose_pivot = pivot;
+        let plan = MemoryPlan::new(&config);
+        let mut arena = [0u8; 1 << 20];
+        let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+        put_test_frame(&mut trainer);
+        let camera = test_camera();
+        let pose = Pose {
+            rotation: Mat3::from_rotation_y(-0.2) * Mat3::from_rotation_x(0.35),
+            center: Vec3::new(-0.1, 0.2, 0.1),
+        };
+        let mut rng = rng::Rng::new(5);
+        let mut pixels = [0u8; 8 * 8 * 3];
+        for p in pixels.iter_mut() {
+            *p = (rng.uniform() * 255.0) as u8;
+        }
+        let view = (&camera, &pose, &pixels[..]);
+        let start = [0.2, -0.1, 0.3, 0.05, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03];
+        let mut laps = trainer.profile.laps();
+        let mut analytic = [0.0f32; 10];
+        trainer.fit_pass(
+            &Sequential,
+            view,
+            (0, 8),
+            (3, true),
+            &start,
+            &mut analytic,
+            &mut laps,
+        );
+        assert!(analytic[4..].iter().any(|g| *g != 0.0), "no pose gradient");
+        for i in 0..10 {
+            let h = if i < 4 { 1e-2 } else { 1e-3 };
+            let mut at = |delta: f32| {
+                let mut params = start;
+                params[i] += delta;
+                let mut grad = [0.0f32; 10];
+                trainer.fit_pass(
+                    &Sequential,
+                    view,
+                    (0, 8),
+                    (3, true),
+                    &params,
+                    &mut grad,
+                    &mut laps,
+                ) as f64
+            };
+            let numeric = ((at(h) - at(-h)) / (2.0 * h as f64)) as f32;
+            let scale = numeric.abs().max(analytic[i].abs()).max(1e-4);
+            assert!(
+                (analytic[i] - numeric).abs() / scale < 0.05,
+                "{pivot:?}, parameter {i}: analytic {} vs numeric {numeric}",
+                analytic[i]
+            );
+        }
+    }
+}
+
 #[test]
 fn coarse_to_fine_hides_the_finer_scales_at_first_and_uses_all_after_its_steps() {
     let mut config = small_config();
