@@ -97,24 +97,24 @@ fn a_hand_written_speedplus_folder_trains_and_evaluates_through_the_cli() {
     assert!(text.contains("training on 14 views (2 held out)"), "{text}");
     assert!(run.join("checkpoint.onrf").is_file() && run.join("renders/view_008.png").is_file());
     let checkpoint = run.join("checkpoint.onrf");
-    let (ok, text) = orbit_nerf(&[
-        "eval",
-        "--data",
-        data,
-        "--size",
-        "64",
-        "--checkpoint",
-        checkpoint.to_str().unwrap(),
-    ]);
-    assert!(ok, "{text}");
-    let mean: f64 = text
-        .lines()
-        .find_map(|l| l.strip_prefix("mean PSNR over 2 held-out views: "))
-        .and_then(|l| l.trim_end_matches(" dB").parse().ok())
-        .unwrap_or_else(|| panic!("no mean PSNR in: {text}"));
+    let eval = |options: &[&str]| -> f64 {
+        let mut args = vec!["eval", "--data", data, "--size", "64", "--checkpoint"];
+        args.push(checkpoint.to_str().unwrap());
+        args.extend_from_slice(options);
+        let (ok, text) = orbit_nerf(&args);
+        assert!(ok, "{text}");
+        text.lines()
+            .find_map(|l| l.strip_prefix("mean PSNR over 2 held-out views: "))
+            .and_then(|l| l.trim_end_matches(" dB").parse().ok())
+            .unwrap_or_else(|| panic!("no mean PSNR in: {text}"))
+    };
+    let mean = eval(&[]);
     // A uniform disc on black is easy: 60 steps already beat a blank (black) guess, which
     // scores about 12 dB here.
-    assert!(mean > 16.0, "{text}");
+    assert!(mean > 16.0, "{mean}");
+    // `--align-poses` fits the held-out poses too, so the views are rendered elsewhere.
+    let aligned = eval(&["--align-poses"]);
+    assert!(aligned > 16.0 && aligned != mean, "{mean} -> {aligned}");
     // A missing label file is one clear error naming the place.
     let empty = temp_dir("empty");
     let (ok, text) = orbit_nerf(&["train", "--data", empty.to_str().unwrap(), "--steps", "1"]);

@@ -51,6 +51,10 @@ pub struct RenderArgs {
     /// Steps fitting each view's appearance embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     fit_steps: u32,
+    /// Also fit each view's pose correction in those steps and render it at its corrected
+    /// label (as `eval --align-poses`), instead of at its label.
+    #[arg(long)]
+    align_poses: bool,
 }
 
 fn parse_orbit(text: &str) -> Result<usize, String> {
@@ -80,7 +84,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
         args.threads,
         &dataset,
         &views,
-        (args.fit_steps, false),
+        (args.fit_steps, args.align_poses),
         Some(&args.out),
     )?;
     for s in &scores {
