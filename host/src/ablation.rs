@@ -8,8 +8,7 @@ use crate::error::{HostError, Result};
 use crate::geometry::{self, Chamfer, Mesh, SurfaceOptions, Triangle};
 use crate::report::{self, ModelFigures, PoseErrors, TrainingFigures, ViewFigures, ViewMetrics};
 use crate::train::{self, RayonExecutor};
-use orbit_nerf_core::glam::{Mat3, Vec3};
-use orbit_nerf_core::{Config, MemoryPlan, Pose, PoseCorrection, StepReport, Trainer};
+use orbit_nerf_core::{Config, MemoryPlan, Pose, StepReport, Trainer};
 use std::time::Instant;
 
 /// Which of the method's additions a model uses.
@@ -157,21 +156,6 @@ pub fn geometry_row(result: &VariantResult, truth: &[Triangle]) -> GeometryRow {
         vertices,
         triangles,
         chamfer,
-    }
-}
-
-/// The pose a frame's label becomes with its learned correction: rays start at the corrected
-/// origin (`centre + dt`, turned about `pivot` if there is one) and their directions are
-/// rotated by the correction in the world frame.
-pub fn corrected_pose(label: &Pose, correction: &PoseCorrection, pivot: Option<Vec3>) -> Pose {
-    let rotation = Mat3::from_cols(
-        correction.rotate(Vec3::X),
-        correction.rotate(Vec3::Y),
-        correction.rotate(Vec3::Z),
-    );
-    Pose {
-        rotation: rotation * label.rotation,
-        center: correction.origin(label.center, pivot),
     }
 }
 
@@ -340,7 +324,7 @@ impl Experiment<'_> {
                     .enumerate()
                     .map(|(slot, label)| {
                         let correction = trainer.pose_correction(slot).unwrap_or_default();
-                        corrected_pose(label, &correction, config.pose_pivot_point())
+                        correction.apply(label, config.pose_pivot_point())
                     })
                     .collect();
                 (
@@ -414,41 +398,4 @@ fn resume(
     let figures: FiguresSoFar = postcard::from_bytes(checkpoint.section(FIGURES_SECTION)?)
         .map_err(|e| HostError::field(path, FIGURES_SECTION, format!("cannot decode: {e}")))?;
     Ok(figures)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn corrected_pose_applies_the_correction_in_the_world_frame() {
-        let label = Pose {
-            rotation: Mat3::from_rotation_x(0.3),
-            center: Vec3::new(1.0, 2.0, 3.0),
-        };
-        let correction = PoseCorrection {
-            dt: Vec3::new(0.1, 0.0, -0.2),
-            v: Vec3::new(0.0, 0.05, 0.0),
-        };
-        let pose = corrected_pose(&label, &correction, None);
-        let d_cam = Vec3::new(0.2, -0.1, 1.0);
-        // The corrected pose sends a camera ray where the trainer sends it.
-        let expected = correction.rotate(label.rotation * d_cam);
-        assert!((pose.rotation * d_cam - expected).length() < 1e-6);
-        assert!((pose.center - Vec3::new(1.1, 2.0, 2.8)).length() < 1e-6);
-        // About a pivot the rotation also turns the centre: it keeps its distance to the
-        // pivot, and a pure rotation moves it along the sphere about the pivot.
-        let pivot = Vec3::new(0.5, 0.0, 0.0);
-        let turn = PoseCorrection {
-            dt: Vec3::ZERO,
-            v: Vec3::new(0.0, 0.0, 0.1),
-        };
-        let pose = corrected_pose(&label, &turn, Some(pivot));
-        assert!((pose.center.distance(pivot) - label.center.distance(pivot)).abs() < 1e-5);
-        assert!((pose.center - (pivot + turn.rotate(label.center - pivot))).length() < 1e-6);
-        assert!((pose.rotation * d_cam - turn.rotate(label.rotation * d_cam)).length() < 1e-6);
-        // A zero correction leaves the label as it is.
-        let same = corrected_pose(&label, &PoseCorrection::default(), None);
-        assert!((same.rotation - label.rotation).abs_diff_eq(Mat3::ZERO, 1e-7));
-    }
 }

@@ -1,7 +1,6 @@
 //! Training on the host: the model config as a file, a rayon executor for the core's chunks,
 //! loading a dataset into frame slots, evaluation renders, and checkpoints of the core's state.
 
-use crate::ablation::corrected_pose;
 use crate::checkpoint::{Checkpoint, Section};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
@@ -392,8 +391,8 @@ pub fn fit_held_out<E: Executor>(
         &mut params,
     )?;
     let pose = if align_pose {
-        let correction = PoseCorrection::from_params(&params[dim..], config.length_unit());
-        corrected_pose(&frame.pose, &correction, config.pose_pivot_point())
+        PoseCorrection::from_params(&params[dim..], config.length_unit())
+            .apply(&frame.pose, config.pose_pivot_point())
     } else {
         frame.pose
     };

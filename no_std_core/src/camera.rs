@@ -169,6 +169,21 @@ impl PoseCorrection {
         }
     }
 
+    /// The pose a label becomes with this correction: rays start at the corrected origin
+    /// ([`PoseCorrection::origin`]) and their directions are rotated in the world frame, so
+    /// a camera at the result sends every pixel's ray where the trainer sends it.
+    pub fn apply(&self, label: &Pose, pivot: Option<Vec3>) -> Pose {
+        let rotation = Mat3::from_cols(
+            self.rotate(Vec3::X),
+            self.rotate(Vec3::Y),
+            self.rotate(Vec3::Z),
+        );
+        Pose {
+            rotation: rotation * label.rotation,
+            center: self.origin(label.center, pivot),
+        }
+    }
+
     /// Rotate a vector: `d + 2w (v × d) + 2 v × (v × d)`.
     pub fn rotate(&self, d: Vec3) -> Vec3 {
         let (v, w) = self.quaternion();
@@ -191,6 +206,38 @@ impl PoseCorrection {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn applying_a_correction_moves_the_label_in_the_world_frame() {
+        let label = Pose {
+            rotation: Mat3::from_rotation_x(0.3),
+            center: Vec3::new(1.0, 2.0, 3.0),
+        };
+        let correction = PoseCorrection {
+            dt: Vec3::new(0.1, 0.0, -0.2),
+            v: Vec3::new(0.0, 0.05, 0.0),
+        };
+        let pose = correction.apply(&label, None);
+        let d_cam = Vec3::new(0.2, -0.1, 1.0);
+        // The corrected pose sends a camera ray where the trainer sends it.
+        let expected = correction.rotate(label.rotation * d_cam);
+        assert!((pose.rotation * d_cam - expected).length() < 1e-6);
+        assert!((pose.center - Vec3::new(1.1, 2.0, 2.8)).length() < 1e-6);
+        // About a pivot the rotation also turns the centre: it keeps its distance to the
+        // pivot, and a pure rotation moves it along the sphere about the pivot.
+        let pivot = Vec3::new(0.5, 0.0, 0.0);
+        let turn = PoseCorrection {
+            dt: Vec3::ZERO,
+            v: Vec3::new(0.0, 0.0, 0.1),
+        };
+        let pose = turn.apply(&label, Some(pivot));
+        assert!((pose.center.distance(pivot) - label.center.distance(pivot)).abs() < 1e-5);
+        assert!((pose.center - (pivot + turn.rotate(label.center - pivot))).length() < 1e-6);
+        assert!((pose.rotation * d_cam - turn.rotate(label.rotation * d_cam)).length() < 1e-6);
+        // A zero correction leaves the label as it is.
+        let same = PoseCorrection::default().apply(&label, None);
+        assert!((same.rotation - label.rotation).abs_diff_eq(Mat3::ZERO, 1e-7));
+    }
 
     #[test]
     fn pose_correction_rotation_is_a_rotation_and_its_gradient_matches_finite_differences() {

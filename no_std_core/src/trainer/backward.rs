@@ -215,7 +215,7 @@ impl Chunk<'_> {
                 }
                 let embedding = embedding_of(shared, r);
                 let slot = shared.ray_frames.get(r).copied().unwrap_or(0) as usize;
-                let d_embedding = match (shared.fit_embedding, shared.embedding) {
+                let d_embedding = match (shared.fitting_view, shared.embedding) {
                     (true, _) => self.frame_grads.get_mut(..dim),
                     (false, Embedding::PerFrame(_)) => self
                         .frame_grads
@@ -242,7 +242,7 @@ impl Chunk<'_> {
                 }
             }
             laps.lap(Stage::ColourBackward, &mut self.times);
-            if shared.fit_embedding && !shared.pose_gradients {
+            if shared.fitting_view && !shared.pose_gradients {
                 continue;
             }
             backward_layer(
@@ -267,7 +267,7 @@ impl Chunk<'_> {
             laps.lap(Stage::DensityBackward, &mut self.times);
 
             // A view fit only wants the spatial gradient: the frozen planes get none.
-            let mut sink = if shared.fit_embedding {
+            let mut sink = if shared.fitting_view {
                 PlaneGrads {
                     grads: &mut [],
                     touched: &mut [],

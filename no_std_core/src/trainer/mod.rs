@@ -188,7 +188,7 @@ struct Shared<'s> {
     /// One view's parameters are being fitted with the field frozen: the embedding's
     /// gradient goes to the chunk's first frame-gradient slot, and without `fit_pose` the
     /// backward pass stops at the colour MLP's input.
-    fit_embedding: bool,
+    fitting_view: bool,
     /// While fitting a view's pose correction: its six parameters and the label's camera
     /// centre (the pose gradients fold into the first frame-gradient slot's correction).
     fit_pose: Option<([f32; POSE_PARAMS], [f32; 3])>,
@@ -306,7 +306,7 @@ impl<'a> Trainer<'a> {
             embedding,
             draw_counter,
             jitter: !matches!(pass, Pass::Render { .. }),
-            fit_embedding: matches!(pass, Pass::FitView { .. }),
+            fitting_view: matches!(pass, Pass::FitView { .. }),
             fit_pose,
             pose_gradients: match pass {
                 Pass::Train => self.config.pose_learns_at(self.state.step),
