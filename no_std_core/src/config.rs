@@ -158,8 +158,10 @@ pub struct Config {
     /// The batch is cut into this many equal chunks, each with its own buffers; the host
     /// runs chunks on threads, and results never depend on which thread ran which chunk.
     pub chunks: u8,
-    /// Sample capacity of one chunk. A ray whose samples do not fit is dropped, with every
-    /// ray after it in the chunk (deterministic truncation, counted in the step report).
+    /// Sample capacity of one pass of a chunk: a chunk trains (and renders) its rays in as
+    /// many passes as their samples need, each pass as many whole rays as fit. Training
+    /// keeps every activation of a pass for the backward pass (about 1.7 KiB per sample with
+    /// the default MLPs), so a pass should fit in the L2 cache.
     pub samples_per_chunk: u32,
 
     // --- optimisation ---
@@ -263,7 +265,7 @@ impl Config {
         rays_per_batch: 4096,
         foreground_fraction: 0.0,
         chunks: 4,
-        samples_per_chunk: 16 * 1024,
+        samples_per_chunk: 1024,
         steps: 3000,
         warmup_steps: 128,
         learning_rate: 0.01,
@@ -285,10 +287,14 @@ impl Config {
     /// SHIRT): three quarters of the rays on the target's box, pose corrections that turn
     /// cameras about the target and start once the field has formed (300 steps), and a colour
     /// MLP twice as wide (the lamp's direction changes the shading, which the embedding can
-    /// only express through it: +0.4 dB held-out on `lightbox` for 1.7x the training time).
-    /// Measured against DEFAULT in the README.
+    /// only express through it: +0.4 dB held-out on `lightbox` for 1.7x the training time),
+    /// and 2048 rays per step: rays through the target march about 40 samples, twice lego's,
+    /// so a step of 2048 costs about what a lego step of 4096 does (on `lightbox`, 4096 rays
+    /// scored 0.3 dB more after 500 steps in 1.7x the time). Measured against DEFAULT in the
+    /// README.
     pub const SPACECRAFT: Config = Config {
         colour_hidden: 128,
+        rays_per_batch: 2048,
         foreground_fraction: 0.75,
         pose_pivot: PosePivot::TargetOrigin,
         pose_warmup_steps: 300,
@@ -445,7 +451,7 @@ impl Config {
         {
             return bad("foreground_fraction");
         }
-        if (self.samples_per_chunk as usize) < LANES || self.samples_per_chunk > (1 << 26) {
+        if (self.samples_per_chunk as usize) < LANES || self.samples_per_chunk > (1 << 20) {
             return bad("samples_per_chunk");
         }
         if self.steps == 0 {
@@ -596,21 +602,33 @@ pub const fn widest_layer(c: &Config) -> usize {
     w.div_ceil(8) * 8
 }
 
-/// Floats of activation (or gradient) per lane in the MLP scratch. Of the colour MLP's
-/// inputs only the geometry features vary per sample; the rest go in once per ray.
-pub const fn activation_floats(c: &Config) -> usize {
-    c.density_inputs()
-        + c.density_hidden as usize
-        + c.density_outputs()
-        + c.geo_features as usize
-        + 2 * c.colour_hidden as usize
-        + RGB
+/// Activation rows of the density MLP per mini-batch: plane features, hidden layer, outputs.
+pub const fn density_activation_rows(c: &Config) -> usize {
+    c.density_inputs() + c.density_hidden as usize + c.density_outputs()
 }
 
-/// f32 values stored per sample: position (3), density, geometry features, colour (3),
-/// density gradient, colour gradient (3).
+/// Activation rows of the colour MLP per mini-batch. Of its inputs only the geometry
+/// features vary per sample; the rest go in once per ray.
+pub const fn colour_activation_rows(c: &Config) -> usize {
+    c.geo_features as usize + 2 * c.colour_hidden as usize + RGB
+}
+
+/// Floats of activation (or gradient) per lane in the MLP scratch.
+pub const fn activation_floats(c: &Config) -> usize {
+    density_activation_rows(c) + colour_activation_rows(c)
+}
+
+/// f32 values stored per sample for training: the forward ones, the gradients of the
+/// density, the colour and the geometry features, and the activations the backward pass
+/// reads instead of recomputing them: the density MLP's rows, each plane's bilinear value
+/// (3 per feature) and the colour MLP's rows.
 pub const fn sample_floats(c: &Config) -> usize {
-    forward_sample_floats(c) + 1 + RGB
+    forward_sample_floats(c)
+        + 1
+        + RGB
+        + c.geo_features as usize
+        + activation_floats(c)
+        + 3 * c.density_inputs()
 }
 
 /// f32 values per sample that rendering uses: position (3), density, geometry features,
@@ -675,11 +693,13 @@ impl MemoryPlan {
         } else {
             forward_sample_floats(c)
         };
+        // Whole mini-batches: the stored activations are kept per mini-batch of LANES.
+        let samples = samples.div_ceil(LANES) * LANES;
         let per_chunk = align(samples * sample_block * 4)
-            + align(samples * 4)
+            + 2 * align(samples * 4)
             + align((chunk_rays + 1) * 4)
+            + align(chunk_rays * 4)
             + align((1 + t) * LANES * activation_floats(c) * 4)
-            + align(LANES * 3 * c.density_inputs() * 4)
             + t * align(LANES * widest_layer(c) * 4)
             + t * align(chunk_rays * 6 * 4);
         let sample_bytes = chunks * per_chunk;

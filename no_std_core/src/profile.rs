@@ -23,15 +23,12 @@ pub enum Stage {
     Marching,
     /// Plane lookups and the density MLP on every marched sample (chunks).
     DensityForward,
-    /// Cutting each ray where its transmittance runs out, compacting the samples (chunks).
+    /// Cutting each ray where its transmittance runs out, listing the kept samples (chunks).
     EarlyStop,
     /// The colour MLP on the kept samples (chunks).
     ColourForward,
     /// Compositing, the loss and the compositing's backward pass (chunks).
     Compositing,
-    /// The backward pass recomputing the field's activations, mini-batch by mini-batch
-    /// (chunks).
-    BackwardRecompute,
     /// Backward through the colour MLP (chunks).
     ColourBackward,
     /// Backward through the density MLP, and the embeddings' gradients (chunks).
@@ -49,7 +46,7 @@ pub enum Stage {
 }
 
 /// Number of stages.
-pub const STAGES: usize = 14;
+pub const STAGES: usize = 13;
 
 impl Stage {
     /// Every stage, in the order of a step (then evaluation's).
@@ -60,7 +57,6 @@ impl Stage {
         Stage::EarlyStop,
         Stage::ColourForward,
         Stage::Compositing,
-        Stage::BackwardRecompute,
         Stage::ColourBackward,
         Stage::DensityBackward,
         Stage::PlaneBackward,
@@ -79,7 +75,6 @@ impl Stage {
             Stage::EarlyStop => "early stop",
             Stage::ColourForward => "colour forward",
             Stage::Compositing => "compositing + loss",
-            Stage::BackwardRecompute => "backward: recompute",
             Stage::ColourBackward => "backward: colour MLP",
             Stage::DensityBackward => "backward: density MLP",
             Stage::PlaneBackward => "backward: planes + poses",

@@ -64,41 +64,21 @@ pub struct OccupancyView<'a> {
 
 impl OccupancyView<'_> {
     #[inline]
-    fn cell_of(&self, p: Vec3) -> [usize; 3] {
-        let u = self.aabb.normalise(p);
-        let r = self.res as f32;
-        // Saturating float-to-int casts keep NaN and out-of-box values in range.
-        u.map(|v| ((v * r) as usize).min(self.res - 1))
-    }
-
-    #[inline]
     fn occupied(&self, c: [usize; 3]) -> bool {
         let i = (c[2] * self.res + c[1]) * self.res + c[0];
         self.bits
             .get(i / 64)
             .is_some_and(|w| w >> (i % 64) & 1 == 1)
     }
-
-    /// Distance along the ray at which it leaves cell `c`.
-    fn cell_exit(&self, c: [usize; 3], origin: Vec3, dir: Vec3) -> f32 {
-        let size = (self.aabb.max - self.aabb.min) / self.res as f32;
-        let mut t = f32::INFINITY;
-        for a in 0..3 {
-            let d = dir[a];
-            if d.abs() < 1e-12 {
-                continue;
-            }
-            let lo = self.aabb.min[a] + c[a] as f32 * size[a];
-            let bound = if d > 0.0 { lo + size[a] } else { lo };
-            t = t.min((bound - origin[a]) / d);
-        }
-        t
-    }
 }
 
 /// Sample distances along a ray: the lattice `t_near + (k + jitter) * step` inside the box,
 /// restricted to occupied cells. Calls `emit(t)` for each until it returns false or
 /// `max_samples` were emitted; returns how many were emitted.
+///
+/// The ray walks the grid cell by cell (Amanatides and Woo's traversal: per cell a minimum
+/// of three exit distances and one bit test, no division), emitting the lattice points that
+/// fall inside each occupied cell and stepping over the rest.
 pub fn march(
     occupancy: &OccupancyView<'_>,
     origin: Vec3,
@@ -111,28 +91,75 @@ pub fn march(
     let Some((t_near, t_far)) = occupancy.aabb.clip(origin, dir) else {
         return 0;
     };
+    let res = occupancy.res;
+    // The ray in grid units: cell coordinates of o + d t are og + t dg.
+    let scale = res as f32 / (occupancy.aabb.max - occupancy.aabb.min);
+    let og = (origin - occupancy.aabb.min) * scale;
+    let dg = dir * scale;
+    let entry = og + dg * t_near;
+    let mut cell = [0usize; 3];
+    let mut t_exit = [f32::INFINITY; 3];
+    let mut t_delta = [f32::INFINITY; 3];
+    let mut forward = [true; 3];
+    for a in 0..3 {
+        // Saturating float-to-int casts keep rounding outside the box in range.
+        cell[a] = (entry[a] as usize).min(res - 1);
+        if dg[a].abs() >= 1e-12 {
+            forward[a] = dg[a] > 0.0;
+            let bound = cell[a] as f32 + if forward[a] { 1.0 } else { 0.0 };
+            t_exit[a] = (bound - og[a]) / dg[a];
+            t_delta[a] = 1.0 / dg[a].abs();
+        }
+    }
     let mut k = 0.0f32;
     let mut count = 0;
-    // Each iteration either emits or moves to the next cell, so this ends within
-    // max_samples + (cells crossed) iterations.
+    let mut t_enter = t_near;
+    // Each iteration leaves one cell, so this ends within 3 * res iterations.
     loop {
-        let t = t_near + (k + jitter) * step;
-        if t.is_nan() || t >= t_far || count >= max_samples {
+        let a = if t_exit[0] <= t_exit[1] && t_exit[0] <= t_exit[2] {
+            0
+        } else if t_exit[1] <= t_exit[2] {
+            1
+        } else {
+            2
+        };
+        let leave = t_exit[a].min(t_far);
+        if occupancy.occupied(cell) {
+            // The first lattice point at or past the cell's entry.
+            let first = libm::ceilf((t_enter - t_near) / step - jitter);
+            if first > k {
+                k = first;
+            }
+            loop {
+                let t = t_near + (k + jitter) * step;
+                if t >= leave {
+                    break;
+                }
+                if count >= max_samples || !emit(t) {
+                    return count;
+                }
+                count += 1;
+                k += 1.0;
+            }
+        }
+        // (Whatever the distances, each iteration moves one cell, so the walk ends at the
+        // grid's edge at the latest.)
+        if t_exit[a] >= t_far {
             return count;
         }
-        let cell = occupancy.cell_of(origin + dir * t);
-        if occupancy.occupied(cell) {
-            if !emit(t) {
+        t_enter = t_exit[a];
+        if forward[a] {
+            cell[a] += 1;
+            if cell[a] == res {
                 return count;
             }
-            count += 1;
-            k += 1.0;
         } else {
-            let exit = occupancy.cell_exit(cell, origin, dir);
-            // Next lattice point past the cell exit (at least one step ahead).
-            let next = libm::ceilf((exit - t_near) / step - jitter);
-            k = if next > k { next } else { k + 1.0 };
+            if cell[a] == 0 {
+                return count;
+            }
+            cell[a] -= 1;
         }
+        t_exit[a] += t_delta[a];
     }
 }
 
@@ -299,6 +326,98 @@ mod tests {
         assert!(aabb.clip(Vec3::new(0.0, 0.0, -3.0), -Vec3::Z).is_none());
         assert!(aabb.clip(Vec3::splat(f32::NAN), Vec3::Z).is_none());
         assert!(aabb.clip(Vec3::ZERO, Vec3::ZERO).is_none());
+    }
+
+    /// The lattice points in occupied cells, point by point (what `march` must emit).
+    fn march_reference(
+        occ: &OccupancyView<'_>,
+        o: Vec3,
+        d: Vec3,
+        step: f32,
+        jitter: f32,
+    ) -> heapless::Vec<f32, 512> {
+        let mut out = heapless::Vec::new();
+        let Some((t_near, t_far)) = occ.aabb.clip(o, d) else {
+            return out;
+        };
+        let mut k = 0.0f32;
+        loop {
+            let t = t_near + (k + jitter) * step;
+            if t >= t_far {
+                return out;
+            }
+            let u = occ.aabb.normalise(o + d * t);
+            let cell = u.map(|v| ((v * occ.res as f32) as usize).min(occ.res - 1));
+            if occ.occupied(cell) {
+                out.push(t).unwrap();
+            }
+            k += 1.0;
+        }
+    }
+
+    #[test]
+    fn marching_emits_the_lattice_points_in_occupied_cells() {
+        let aabb = Aabb {
+            min: Vec3::new(-1.0, -0.5, -2.0),
+            max: Vec3::new(1.0, 1.5, 0.5),
+        };
+        let res = 8;
+        let mut rng = crate::rng::Rng::new(7);
+        let (mut checked, mut borderline) = (0, 0);
+        for case in 0..400 {
+            let mut bits = [0u64; 8];
+            for w in &mut bits {
+                *w = rng.next_u64() & rng.next_u64();
+            }
+            let occ = OccupancyView {
+                bits: &bits,
+                res,
+                aabb,
+            };
+            let o = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 6.0 - 3.0;
+            // Aimed at a point of the box (most rays hit it).
+            let aim = aabb.min
+                + (aabb.max - aabb.min) * Vec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+            let mut d = aim - o;
+            // Every fourth ray runs along an axis or in a coordinate plane.
+            if case % 4 == 0 {
+                d[case / 4 % 3] = 0.0;
+            }
+            if case % 8 == 0 {
+                d[(case / 4 + 1) % 3] = 0.0;
+            }
+            let d = d.normalize_or(Vec3::X);
+            let (step, jitter) = (0.005 + 0.05 * rng.uniform(), rng.uniform());
+            let expected = march_reference(&occ, o, d, step, jitter);
+            let mut got: heapless::Vec<f32, 512> = heapless::Vec::new();
+            let count = march(&occ, o, d, step, jitter, 512, |t| {
+                got.push(t).unwrap();
+                true
+            });
+            assert_eq!(count, got.len());
+            // A point a rounding error from a cell face may land on either side of it.
+            let on_face = |t: f32| {
+                let g = (aabb.normalise(o + d * t)).map(|v| v * res as f32);
+                g.iter().any(|v| (v - libm::roundf(*v)).abs() < 1e-3)
+            };
+            for t in got.iter().filter(|t| !expected.contains(t)) {
+                assert!(on_face(*t), "case {case}: extra sample at {t}");
+                borderline += 1;
+            }
+            for t in expected.iter().filter(|t| !got.contains(t)) {
+                assert!(on_face(*t), "case {case}: missing sample at {t}");
+                borderline += 1;
+            }
+            assert!(
+                got.windows(2).all(|w| w[0] < w[1]),
+                "case {case}: out of order"
+            );
+            checked += expected.len();
+        }
+        assert!(
+            checked > 2000 && borderline * 100 < checked,
+            "{checked} {borderline}"
+        );
     }
 
     #[test]

@@ -1,73 +1,64 @@
 //! A chunk's training pass: forward, loss and the hand-written backward pass.
 
 use super::chunk::{
-    ChunkReport, density_forward, embedding_of, ray_runs, row_scale_weights, split_rows,
+    ChunkReport, colour_rows_of, density_rows_of, embedding_of, lane_rays, ray_runs,
+    row_scale_weights, split_rows,
 };
 use super::*;
 
 impl Chunk<'_> {
-    /// Forward, loss and backward for this chunk's rays of the batch.
+    /// Forward, loss and backward for this chunk's rays of the batch, in as many passes as
+    /// the sample capacity needs; each pass keeps its activations for its backward pass.
     pub(super) fn train(&mut self, shared: &Shared<'_>) {
         let c = shared.config;
         self.report = ChunkReport::default();
-        let (first, end) = (self.first_ray, self.first_ray + self.ray_count);
-        let mut laps = shared.timer.laps();
-        let rays = self.march_rays(shared, first, end);
-        laps.lap(Stage::Marching, &mut self.times);
-        let marched = self.ray_start[rays] as usize;
-        self.density_pass(shared, marched);
-        laps.lap(Stage::DensityForward, &mut self.times);
-        let n = self.keep_visible(shared, rays);
-        laps.lap(Stage::EarlyStop, &mut self.times);
-        self.colour_pass(shared, n);
-        laps.lap(Stage::ColourForward, &mut self.times);
-
-        // Loss: sum of squared errors over the batch, normalised by the batch capacity so the
-        // gradient scale does not depend on how many rays fit.
-        let norm = 1.0 / (3.0 * c.rays_per_batch as f32);
-        let mut squared_error = 0.0f32;
-        for r in 0..rays {
-            let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
-            let ray = &shared.rays[first + r];
-            let (colour, _) = render::composite_forward(
-                &self.sigma[start..end],
-                &self.rgb[start..end],
-                shared.optical_step,
-                ray.background,
-            );
-            let target = ray.target;
-            let mut d_colour = [0.0f32; 3];
-            for ch in 0..3 {
-                let e = colour[ch] - target[ch];
-                squared_error += e * e;
-                d_colour[ch] = 2.0 * e * norm;
-            }
-            render::composite_backward(
-                &self.sigma[start..end],
-                &self.rgb[start..end],
-                shared.optical_step,
-                colour,
-                d_colour,
-                &mut self.d_sigma[start..end],
-                &mut self.d_rgb[start..end],
-            );
-        }
         if shared.pose_gradients {
             self.ray_grads.fill(0.0);
         }
-        laps.lap(Stage::Compositing, &mut self.times);
-        self.backward(shared, n, &mut laps);
-        if shared.pose_gradients {
-            self.fold_ray_gradients(shared, rays);
+        // Loss: sum of squared errors over the batch, normalised by the batch size.
+        let norm = 1.0 / (3.0 * c.rays_per_batch as f32);
+        let (mut first, end) = (self.first_ray, self.first_ray + self.ray_count);
+        while first < end {
+            let mut laps = shared.timer.laps();
+            let (rays, marched, n) = self.forward_pass(shared, first, end, true, &mut laps);
+            for r in 0..rays {
+                let (start, kept_end) = (self.ray_start[r] as usize, self.kept_end[r] as usize);
+                let ray = &shared.rays[first + r];
+                let (colour, _) = render::composite_forward(
+                    &self.sigma[start..kept_end],
+                    &self.rgb[start..kept_end],
+                    shared.optical_step,
+                    ray.background,
+                );
+                let target = ray.target;
+                let mut d_colour = [0.0f32; 3];
+                for ch in 0..3 {
+                    let e = colour[ch] - target[ch];
+                    self.report.squared_error += e * e;
+                    d_colour[ch] = 2.0 * e * norm;
+                }
+                render::composite_backward(
+                    &self.sigma[start..kept_end],
+                    &self.rgb[start..kept_end],
+                    shared.optical_step,
+                    colour,
+                    d_colour,
+                    &mut self.d_sigma[start..kept_end],
+                    &mut self.d_rgb[start..kept_end],
+                );
+            }
+            laps.lap(Stage::Compositing, &mut self.times);
+            self.backward(shared, first, marched, n, &mut laps);
+            self.report.rays += rays as u32;
+            self.report.samples += n as u32;
+            self.report.marched += marched as u32;
+            first += rays;
         }
-        laps.lap(Stage::PlaneBackward, &mut self.times);
-        self.report = ChunkReport {
-            squared_error,
-            rays: rays as u32,
-            samples: n as u32,
-            marched: marched as u32,
-            dropped: (self.ray_count - rays) as u32,
-        };
+        if shared.pose_gradients {
+            let mut laps = shared.timer.laps();
+            self.fold_ray_gradients(shared, self.ray_count);
+            laps.lap(Stage::PlaneBackward, &mut self.times);
+        }
     }
 
     /// Move each ray's origin and direction gradients to its frame's pose correction (the
@@ -109,10 +100,19 @@ impl Chunk<'_> {
         }
     }
 
-    /// Recompute the field for samples `0..n` mini-batch by mini-batch and push the
-    /// compositing gradients back to the MLPs, the planes and the embeddings.
+    /// Push the compositing gradients of a pass (rays from `first`, `marched` samples, `n`
+    /// of them kept) back through its stored activations: the colour MLP over the kept
+    /// samples' mini-batches, then the density MLP, the planes and the poses over all the
+    /// samples' (the ones cut off carry zero gradients and touch no texel).
     /// `laps` charges each mini-batch's parts to their stages.
-    fn backward(&mut self, shared: &Shared<'_>, n: usize, laps: &mut Laps) {
+    fn backward(
+        &mut self,
+        shared: &Shared<'_>,
+        first: usize,
+        marched: usize,
+        n: usize,
+        laps: &mut Laps,
+    ) {
         let c = shared.config;
         let layout = shared.layout;
         let (sh_len, geo_len, dim) = (
@@ -122,35 +122,34 @@ impl Chunk<'_> {
         );
         let features = c.density_inputs();
         let frame_params = c.frame_params();
+        let pose = shared.pose_gradients;
+        let p = shared.mlp;
+        let layer = |i: usize| layout.layers[i];
+        let (density_rows, colour_rows) = (density_activation_rows(c), colour_activation_rows(c));
+        let values_len = 3 * features;
+        let extent = shared.aabb.max - shared.aabb.min;
+        let weights = row_scale_weights(shared);
+        self.d_geo[..marched * geo_len].fill(0.0);
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
-            let mut act = split_rows(c, self.activations);
-            let grad = split_rows(c, self.gradients);
-            density_forward(
-                shared,
-                &self.positions[base..base + lanes],
-                &mut act,
-                self.plane_values,
+            let b = base / LANES;
+            let act = colour_rows_of(
+                c,
+                &mut self.colour_store[b * colour_rows..(b + 1) * colour_rows],
             );
-            Self::colour_forward(self.sample_ray, self.geo, shared, base, lanes, &mut act);
-            laps.lap(Stage::BackwardRecompute, &mut self.times);
-
+            let grad = split_rows(c, self.gradients).1;
+            let kept = &self.kept_index[base..base + lanes];
             // Output gradients; unused lanes stay zero and so contribute nothing.
-            for row in grad.rgb.iter_mut().chain(grad.density_out.iter_mut()) {
+            for row in grad.rgb.iter_mut() {
                 row.fill(0.0);
             }
-            for l in 0..lanes {
-                let s = base + l;
+            for (l, &s) in kept.iter().enumerate() {
                 for ch in 0..3 {
-                    grad.rgb[ch][l] = self.d_rgb[s][ch] * field::sigmoid_grad(act.rgb[ch][l]);
+                    grad.rgb[ch][l] =
+                        self.d_rgb[s as usize][ch] * field::sigmoid_grad(act.rgb[ch][l]);
                 }
-                // d sigma / d raw = trunc_exp'(raw), which is sigma itself below the clamp.
-                grad.density_out[0][l] =
-                    self.d_sigma[s] * field::trunc_exp_grad(act.density_out[0][l]);
             }
             let g = &mut *self.mlp_grads;
-            let p = shared.mlp;
-            let layer = |i: usize| layout.layers[i];
             let (l_out, l2, l1) = (
                 layer(COLOUR_OUT),
                 layer(COLOUR_HIDDEN2),
@@ -160,22 +159,22 @@ impl Chunk<'_> {
                 p,
                 g,
                 l_out,
-                act.colour2,
+                act.hidden2,
                 grad.rgb,
-                Some(grad.colour2),
+                Some(grad.hidden2),
                 self.lane_major,
             );
-            field::relu_backward(act.colour2, grad.colour2);
+            field::relu_backward(act.hidden2, grad.hidden2);
             backward_layer(
                 p,
                 g,
                 l2,
-                act.colour1,
-                grad.colour2,
-                Some(grad.colour1),
+                act.hidden1,
+                grad.hidden2,
+                Some(grad.hidden1),
                 self.lane_major,
             );
-            field::relu_backward(act.colour1, grad.colour1);
+            field::relu_backward(act.hidden1, grad.hidden1);
             // The first layer: its geometry rows sample by sample, its ray term (view
             // encoding and embedding, see `ray_term`) once per run of a ray's samples.
             let hidden = l1.outputs;
@@ -184,23 +183,25 @@ impl Chunk<'_> {
             let geo_rows = sh_len * hidden..(sh_len + geo_len) * hidden;
             field::layer_backward(
                 &w1[geo_rows.clone()],
-                act.colour_geo,
-                grad.colour1,
-                Some(grad.colour_geo),
+                act.geo,
+                grad.hidden1,
+                Some(grad.geo),
                 &mut dw1[geo_rows],
                 db1,
                 self.lane_major,
             );
-            for gi in 0..geo_len {
-                grad.density_out[1 + gi] = grad.colour_geo[gi];
+            for (l, &s) in kept.iter().enumerate() {
+                for (gi, row) in grad.geo.iter().enumerate() {
+                    self.d_geo[s as usize * geo_len + gi] = row[l];
+                }
             }
-            let pose = shared.pose_gradients;
+            let rays = lane_rays(kept, self.sample_ray);
             let mut sum = [0.0f32; MAX_COLOUR_HIDDEN];
             let sum = &mut sum[..hidden];
-            for (start, end) in ray_runs(&self.sample_ray[base..base + lanes]) {
-                let r = self.sample_ray[base + start] as usize;
+            for (start, end) in ray_runs(&rays[..lanes]) {
+                let r = rays[start] as usize;
                 // d loss / d ray term: the run's first-layer gradients summed over its lanes.
-                for (s, row) in sum.iter_mut().zip(grad.colour1.iter()) {
+                for (s, row) in sum.iter_mut().zip(grad.hidden1.iter()) {
                     *s = row[start..end].iter().sum();
                 }
                 let (_, d) = Self::ray(shared, r);
@@ -242,15 +243,60 @@ impl Chunk<'_> {
                 }
             }
             laps.lap(Stage::ColourBackward, &mut self.times);
-            if shared.fitting_view && !shared.pose_gradients {
+        }
+        if shared.fitting_view && !pose {
+            return;
+        }
+
+        // A view fit only wants the spatial gradient: the frozen planes get none.
+        let mut sink = if shared.fitting_view {
+            PlaneGrads {
+                grads: &mut [],
+                touched: &mut [],
+            }
+        } else {
+            PlaneGrads {
+                grads: self.plane_grads,
+                touched: self.touched,
+            }
+        };
+        for base in (0..marched).step_by(LANES) {
+            let lanes = LANES.min(marched - base);
+            // Which lanes were kept: a ray's kept samples are a prefix of its own. The
+            // density MLP runs on every lane (cheaper than gathering the kept ones; the others
+            // carry zero gradients), the planes only on the kept ones.
+            let mut kept = [false; LANES];
+            for (l, k) in kept.iter_mut().enumerate().take(lanes) {
+                let s = base + l;
+                *k = s < self.kept_end[self.sample_ray[s] as usize - first] as usize;
+            }
+            if !kept.contains(&true) {
                 continue;
             }
+            let b = base / LANES;
+            let act = density_rows_of(
+                c,
+                &mut self.density_store[b * density_rows..(b + 1) * density_rows],
+            );
+            let grad = split_rows(c, self.gradients).0;
+            for row in grad.out.iter_mut() {
+                row.fill(0.0);
+            }
+            for l in (0..lanes).filter(|&l| kept[l]) {
+                let s = base + l;
+                // d sigma / d raw = trunc_exp'(raw), which is sigma itself (clamped alike).
+                grad.out[0][l] = self.d_sigma[s] * self.sigma[s];
+                for gi in 0..geo_len {
+                    grad.out[1 + gi][l] = self.d_geo[s * geo_len + gi];
+                }
+            }
+            let g = &mut *self.mlp_grads;
             backward_layer(
                 p,
                 g,
-                layout.layers[DENSITY_OUT],
+                layer(DENSITY_OUT),
                 act.hidden,
-                grad.density_out,
+                grad.out,
                 Some(grad.hidden),
                 self.lane_major,
             );
@@ -258,7 +304,7 @@ impl Chunk<'_> {
             backward_layer(
                 p,
                 g,
-                layout.layers[DENSITY_HIDDEN],
+                layer(DENSITY_HIDDEN),
                 act.feats,
                 grad.hidden,
                 Some(grad.feats),
@@ -266,34 +312,19 @@ impl Chunk<'_> {
             );
             laps.lap(Stage::DensityBackward, &mut self.times);
 
-            // A view fit only wants the spatial gradient: the frozen planes get none.
-            let mut sink = if shared.fitting_view {
-                PlaneGrads {
-                    grads: &mut [],
-                    touched: &mut [],
-                }
-            } else {
-                PlaneGrads {
-                    grads: self.plane_grads,
-                    touched: self.touched,
-                }
-            };
             let mut d_feat = [0.0f32; 4 * 64];
-            let pose = shared.pose_gradients;
-            let extent = shared.aabb.max - shared.aabb.min;
-            let weights = row_scale_weights(shared);
-            for l in 0..lanes {
+            for l in (0..lanes).filter(|&l| kept[l]) {
+                let s = base + l;
                 for k in 0..features {
                     d_feat[k] = grad.feats[k][l] * weights[k];
                 }
-                let x = Vec3::from_array(self.positions[base + l]);
+                let x = Vec3::from_array(self.positions[s]);
                 let u = shared.aabb.normalise(x);
-                let values = &self.plane_values[l * 3 * features..(l + 1) * 3 * features];
                 let d_u = field::planes_backward(
                     shared.planes,
                     shared.geometry,
                     u,
-                    values,
+                    &self.plane_values[s * values_len..(s + 1) * values_len],
                     &d_feat[..features],
                     &mut sink,
                     pose,
@@ -301,7 +332,7 @@ impl Chunk<'_> {
                 if pose {
                     // x = o + t d: d loss / d o = d loss / d x, d loss / d d = t d loss / d x
                     // (the view encoding's share came with the colour layer).
-                    let r = self.sample_ray[base + l] as usize;
+                    let r = self.sample_ray[s] as usize;
                     let (o, d) = Self::ray(shared, r);
                     let d_x = Vec3::from_array(d_u) / extent;
                     let d_d = d_x * (x - o).dot(d);

@@ -3,37 +3,51 @@
 
 use super::*;
 
-/// Activation rows of one mini-batch of `LANES` samples (or their gradients).
-pub(super) struct Rows<'r> {
+/// The density MLP's activation rows of one mini-batch of `LANES` samples (or their
+/// gradients).
+pub(super) struct DensityRows<'r> {
     pub(super) feats: &'r mut [Row],
     pub(super) hidden: &'r mut [Row],
-    pub(super) density_out: &'r mut [Row],
-    /// The colour MLP's per-sample inputs: the geometry features.
-    pub(super) colour_geo: &'r mut [Row],
-    pub(super) colour1: &'r mut [Row],
-    pub(super) colour2: &'r mut [Row],
+    pub(super) out: &'r mut [Row],
+}
+
+/// The colour MLP's activation rows of one mini-batch (or their gradients).
+pub(super) struct ColourRows<'r> {
+    /// The per-sample inputs: the geometry features.
+    pub(super) geo: &'r mut [Row],
+    pub(super) hidden1: &'r mut [Row],
+    pub(super) hidden2: &'r mut [Row],
     pub(super) rgb: &'r mut [Row],
 }
 
-pub(super) fn split_rows<'r>(c: &Config, rows: &'r mut [Row]) -> Rows<'r> {
+/// One mini-batch's density rows laid out in `rows` (`density_activation_rows` of them).
+pub(super) fn density_rows_of<'r>(c: &Config, rows: &'r mut [Row]) -> DensityRows<'r> {
     let (feats, rest) = rows.split_at_mut(c.density_inputs());
-    let (hidden, rest) = rest.split_at_mut(c.density_hidden as usize);
-    let (density_out, rest) = rest.split_at_mut(c.density_outputs());
-    let (colour_geo, rest) = rest.split_at_mut(c.geo_features as usize);
-    let (colour1, rest) = rest.split_at_mut(c.colour_hidden as usize);
-    let (colour2, rgb) = rest.split_at_mut(c.colour_hidden as usize);
-    Rows {
-        feats,
-        hidden,
-        density_out,
-        colour_geo,
-        colour1,
-        colour2,
+    let (hidden, out) = rest.split_at_mut(c.density_hidden as usize);
+    DensityRows { feats, hidden, out }
+}
+
+/// One mini-batch's colour rows laid out in `rows` (`colour_activation_rows` of them).
+pub(super) fn colour_rows_of<'r>(c: &Config, rows: &'r mut [Row]) -> ColourRows<'r> {
+    let (geo, rest) = rows.split_at_mut(c.geo_features as usize);
+    let (hidden1, rest) = rest.split_at_mut(c.colour_hidden as usize);
+    let (hidden2, rgb) = rest.split_at_mut(c.colour_hidden as usize);
+    ColourRows {
+        geo,
+        hidden1,
+        hidden2,
         rgb,
     }
 }
 
-/// One chunk's private buffers.
+/// The scratch rows of one mini-batch: the density part, then the colour part.
+pub(super) fn split_rows<'r>(c: &Config, rows: &'r mut [Row]) -> (DensityRows<'r>, ColourRows<'r>) {
+    let (density, colour) = rows.split_at_mut(density_activation_rows(c));
+    (density_rows_of(c, density), colour_rows_of(c, colour))
+}
+
+/// One chunk's private buffers. Per-sample buffers are in marching order (a ray's samples
+/// are consecutive); the samples a ray keeps after the early stop are a prefix of its own.
 pub(super) struct Chunk<'a> {
     pub(super) plane_grads: &'a mut [f32],
     pub(super) touched: &'a mut [u64],
@@ -45,12 +59,22 @@ pub(super) struct Chunk<'a> {
     pub(super) rgb: &'a mut [[f32; 3]],
     pub(super) d_sigma: &'a mut [f32],
     pub(super) d_rgb: &'a mut [[f32; 3]],
+    /// d loss / d geometry features of each sample (zero for the samples cut off).
+    pub(super) d_geo: &'a mut [f32],
     pub(super) sample_ray: &'a mut [u32],
+    /// Index of each kept sample (the colour MLP's mini-batches run over these).
+    pub(super) kept_index: &'a mut [u32],
+    /// Where each ray of the pass starts, and where its kept samples end.
     pub(super) ray_start: &'a mut [u32],
+    pub(super) kept_end: &'a mut [u32],
+    /// Scratch rows of one mini-batch (forward-only passes), and their gradients.
     pub(super) activations: &'a mut [Row],
     pub(super) gradients: &'a mut [Row],
-    /// Per-plane bilinear values of each lane's sample (lane-major), kept from the
-    /// recomputed forward pass for the plane backward pass.
+    /// The training pass's activations, kept for its backward pass instead of recomputed:
+    /// the density rows of every mini-batch of samples, the colour rows of every mini-batch
+    /// of kept samples, and each sample's per-plane bilinear values (lane-major).
+    pub(super) density_store: &'a mut [Row],
+    pub(super) colour_store: &'a mut [Row],
     pub(super) plane_values: &'a mut [f32],
     /// d loss / d origin and d loss / d direction of each of the chunk's rays (pose correction).
     pub(super) ray_grads: &'a mut [f32],
@@ -70,7 +94,6 @@ pub(super) struct ChunkReport {
     pub(super) rays: u32,
     pub(super) samples: u32,
     pub(super) marched: u32,
-    pub(super) dropped: u32,
 }
 
 impl Chunk<'_> {
@@ -83,11 +106,12 @@ impl Chunk<'_> {
         )
     }
 
-    /// March rays `first..end` of the batch into the sample buffers, as many as fit.
-    /// Returns the number of rays marched (the rest did not fit).
+    /// March rays `first..end` of the batch into the sample buffers, as many whole rays as
+    /// fit (at least one: the config keeps `max_samples_per_ray <= samples_per_chunk`).
+    /// Returns the number of rays marched.
     pub(super) fn march_rays(&mut self, shared: &Shared<'_>, first: usize, end: usize) -> usize {
         let c = shared.config;
-        let capacity = self.positions.len();
+        let capacity = self.sample_ray.len();
         let mut n = 0usize;
         self.ray_start[0] = 0;
         for r in first..end {
@@ -121,8 +145,8 @@ impl Chunk<'_> {
                     true
                 },
             );
-            if full {
-                // Drop this ray's partial samples: the ray did not fit.
+            if full && r > first {
+                // This ray goes to the next pass, marched again from its start.
                 return r - first;
             }
             self.ray_start[r - first + 1] = n as u32;
@@ -130,35 +154,46 @@ impl Chunk<'_> {
         end - first
     }
 
-    /// Density (and geometry features) of samples `0..n`.
-    pub(super) fn density_pass(&mut self, shared: &Shared<'_>, n: usize) {
+    /// Density (and geometry features) of samples `0..n`. With `store`, every mini-batch's
+    /// activations and plane values stay in the stores for the backward pass.
+    pub(super) fn density_pass(&mut self, shared: &Shared<'_>, n: usize, store: bool) {
         let c = shared.config;
         let geo_len = c.geo_features as usize;
+        let rows = density_activation_rows(c);
+        let values_len = 3 * c.density_inputs() * LANES;
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
-            let mut rows = split_rows(c, self.activations);
-            // Only the density: no backward pass reads this pass's plane values.
+            let (mut act, values) = if store {
+                let b = base / LANES;
+                (
+                    density_rows_of(c, &mut self.density_store[b * rows..(b + 1) * rows]),
+                    &mut self.plane_values[b * values_len..(b + 1) * values_len],
+                )
+            } else {
+                // Only the density: no backward pass reads this pass's plane values.
+                (split_rows(c, self.activations).0, &mut [][..])
+            };
             density_forward(
                 shared,
                 &self.positions[base..base + lanes],
-                &mut rows,
-                &mut [],
+                &mut act,
+                values,
             );
             for l in 0..lanes {
-                self.sigma[base + l] = field::trunc_exp(rows.density_out[0][l]);
+                self.sigma[base + l] = field::trunc_exp(act.out[0][l]);
                 for g in 0..geo_len {
-                    self.geo[(base + l) * geo_len + g] = rows.density_out[1 + g][l];
+                    self.geo[(base + l) * geo_len + g] = act.out[1 + g][l];
                 }
             }
         }
     }
 
-    /// Cut each ray after the sample where its transmittance runs out, and compact the
-    /// kept samples to the front. Returns the number kept.
+    /// Cut each of the pass's `rays` after the sample where its transmittance runs out:
+    /// records where its kept samples end and lists them in `kept_index`. Returns the
+    /// number kept.
     pub(super) fn keep_visible(&mut self, shared: &Shared<'_>, rays: usize) -> usize {
         let c = shared.config;
-        let geo_len = c.geo_features as usize;
-        let mut write = 0usize;
+        let mut n = 0usize;
         for r in 0..rays {
             let (start, end) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
             let kept = render::kept_samples(
@@ -166,76 +201,105 @@ impl Chunk<'_> {
                 shared.optical_step,
                 c.min_transmittance,
             );
-            self.ray_start[r] = write as u32;
-            if write != start {
-                self.positions.copy_within(start..start + kept, write);
-                self.sigma.copy_within(start..start + kept, write);
-                self.sample_ray.copy_within(start..start + kept, write);
-                self.geo
-                    .copy_within(start * geo_len..(start + kept) * geo_len, write * geo_len);
+            self.kept_end[r] = (start + kept) as u32;
+            for (slot, s) in self.kept_index[n..n + kept].iter_mut().zip(start as u32..) {
+                *slot = s;
             }
-            write += kept;
+            n += kept;
         }
-        self.ray_start[rays] = write as u32;
-        write
+        n
     }
 
-    /// Colours of samples `0..n`.
-    pub(super) fn colour_pass(&mut self, shared: &Shared<'_>, n: usize) {
+    /// Colours of the kept samples (`n` of them). With `store`, every mini-batch's colour
+    /// rows stay in the store for the backward pass.
+    pub(super) fn colour_pass(&mut self, shared: &Shared<'_>, n: usize, store: bool) {
         let c = shared.config;
+        let rows = colour_activation_rows(c);
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
-            let mut rows = split_rows(c, self.activations);
-            Self::colour_forward(self.sample_ray, self.geo, shared, base, lanes, &mut rows);
-            for l in 0..lanes {
-                self.rgb[base + l] = [rows.rgb[0][l], rows.rgb[1][l], rows.rgb[2][l]];
+            let mut act = if store {
+                let b = base / LANES;
+                colour_rows_of(c, &mut self.colour_store[b * rows..(b + 1) * rows])
+            } else {
+                split_rows(c, self.activations).1
+            };
+            let kept = &self.kept_index[base..base + lanes];
+            Self::colour_forward(kept, self.sample_ray, self.geo, shared, &mut act);
+            for (l, &s) in kept.iter().enumerate() {
+                self.rgb[s as usize] = [act.rgb[0][l], act.rgb[1][l], act.rgb[2][l]];
             }
         }
     }
 
-    /// The colour MLP on samples `base..base + lanes` into `rows.rgb`. The view encoding and
-    /// the appearance embedding are the same for every sample of a ray, so their part of the
-    /// first layer ([`ray_term`]) is computed once per run of a ray's samples; only the
-    /// geometry features (stored by the density pass) go through that layer per sample.
+    /// The colour MLP on the samples `kept` (at most `LANES`) into `rows.rgb`. The view
+    /// encoding and the appearance embedding are the same for every sample of a ray, so
+    /// their part of the first layer ([`ray_term`]) is computed once per run of a ray's
+    /// samples; only the geometry features (stored by the density pass) go through that
+    /// layer per sample.
     pub(super) fn colour_forward(
+        kept: &[u32],
         sample_ray: &[u32],
         geo: &[f32],
         shared: &Shared<'_>,
-        base: usize,
-        lanes: usize,
-        rows: &mut Rows<'_>,
+        rows: &mut ColourRows<'_>,
     ) {
         let c = shared.config;
         let (sh_len, geo_len) = (c.sh_values(), c.geo_features as usize);
         let first = shared.layout.layers[COLOUR_HIDDEN1];
         let hidden = first.outputs;
-        for (g, row) in rows.colour_geo.iter_mut().enumerate() {
+        let lanes = kept.len();
+        for (g, row) in rows.geo.iter_mut().enumerate() {
             row.fill(0.0);
-            for (l, v) in row.iter_mut().enumerate().take(lanes) {
-                *v = geo[(base + l) * geo_len + g];
+            for (v, &s) in row.iter_mut().zip(kept) {
+                *v = geo[s as usize * geo_len + g];
             }
         }
+        let rays = lane_rays(kept, sample_ray);
         let mut term = [0.0f32; MAX_COLOUR_HIDDEN];
         let term = &mut term[..hidden];
-        for (start, end) in ray_runs(&sample_ray[base..base + lanes]) {
-            ray_term(shared, sample_ray[base + start] as usize, term);
-            for (row, t) in rows.colour1.iter_mut().zip(term.iter()) {
+        for (start, end) in ray_runs(&rays[..lanes]) {
+            ray_term(shared, rays[start] as usize, term);
+            for (row, t) in rows.hidden1.iter_mut().zip(term.iter()) {
                 row[start..end].fill(*t);
             }
         }
         // Unused lanes (their geometry rows are zero) get the bias alone.
         let p = shared.mlp;
         let bias = &p[first.biases..first.biases + hidden];
-        for (row, b) in rows.colour1.iter_mut().zip(bias) {
+        for (row, b) in rows.hidden1.iter_mut().zip(bias) {
             row[lanes..].fill(*b);
         }
         let weights = &p[first.weights..first.biases];
         field::layer_forward_onto(
             &weights[sh_len * hidden..(sh_len + geo_len) * hidden],
-            rows.colour_geo,
-            rows.colour1,
+            rows.geo,
+            rows.hidden1,
         );
-        colour_rows(shared, rows.colour1, rows.colour2, rows.rgb);
+        colour_mlp(shared, rows.hidden1, rows.hidden2, rows.rgb);
+    }
+
+    /// The forward part of one pass over rays from `first` (before `end`): march as many
+    /// whole rays as fit, their densities, the early stop and the kept samples' colours (with
+    /// `store`, keeping the activations for the backward pass). Returns the rays, the
+    /// samples marched and the samples kept.
+    pub(super) fn forward_pass(
+        &mut self,
+        shared: &Shared<'_>,
+        first: usize,
+        end: usize,
+        store: bool,
+        laps: &mut Laps,
+    ) -> (usize, usize, usize) {
+        let rays = self.march_rays(shared, first, end);
+        laps.lap(Stage::Marching, &mut self.times);
+        let marched = self.ray_start[rays] as usize;
+        self.density_pass(shared, marched, store);
+        laps.lap(Stage::DensityForward, &mut self.times);
+        let n = self.keep_visible(shared, rays);
+        laps.lap(Stage::EarlyStop, &mut self.times);
+        self.colour_pass(shared, n, store);
+        laps.lap(Stage::ColourForward, &mut self.times);
+        (rays, marched, n)
     }
 
     /// Render this chunk's rays (all of them, in as many passes as the sample capacity
@@ -245,23 +309,13 @@ impl Chunk<'_> {
         self.report = ChunkReport::default();
         let (mut first, end) = (self.first_ray, self.first_ray + self.ray_count);
         while first < end {
-            // The config guarantees max_samples_per_ray <= samples_per_chunk, so at least
-            // one ray always fits and this loop advances.
             let mut laps = shared.timer.laps();
-            let rays = self.march_rays(shared, first, end).max(1);
-            laps.lap(Stage::Marching, &mut self.times);
-            let marched = self.ray_start[rays] as usize;
-            self.density_pass(shared, marched);
-            laps.lap(Stage::DensityForward, &mut self.times);
-            let n = self.keep_visible(shared, rays);
-            laps.lap(Stage::EarlyStop, &mut self.times);
-            self.colour_pass(shared, n);
-            laps.lap(Stage::ColourForward, &mut self.times);
+            let (rays, _, n) = self.forward_pass(shared, first, end, false, &mut laps);
             for r in 0..rays {
-                let (start, stop) = (self.ray_start[r] as usize, self.ray_start[r + 1] as usize);
+                let kept = self.ray_start[r] as usize..self.kept_end[r] as usize;
                 let (colour, _) = render::composite_forward(
-                    &self.sigma[start..stop],
-                    &self.rgb[start..stop],
+                    &self.sigma[kept.clone()],
+                    &self.rgb[kept],
                     shared.optical_step,
                     c.background,
                 );
@@ -282,10 +336,10 @@ impl Chunk<'_> {
         sigma: &mut [f32],
     ) {
         for (points, sigma) in points.chunks(LANES).zip(sigma.chunks_mut(LANES)) {
-            let mut rows = split_rows(shared.config, self.activations);
+            let (mut rows, _) = split_rows(shared.config, self.activations);
             density_forward(shared, points, &mut rows, &mut []);
             for (l, s) in sigma.iter_mut().enumerate() {
-                *s = field::trunc_exp(rows.density_out[0][l]);
+                *s = field::trunc_exp(rows.out[0][l]);
             }
         }
     }
@@ -324,16 +378,25 @@ impl Chunk<'_> {
                 );
                 *p = (shared.aabb.min + (cell + jitter) * size).to_array();
             }
-            let mut rows = split_rows(c, self.activations);
+            let (mut rows, _) = split_rows(c, self.activations);
             density_forward(shared, &positions[..lanes], &mut rows, &mut []);
             for l in 0..lanes {
                 let d = &mut cells[base + l];
-                let sigma = field::trunc_exp(rows.density_out[0][l]);
+                let sigma = field::trunc_exp(rows.out[0][l]);
                 *d = (*d * c.occupancy_decay).max(sigma);
             }
         }
         laps.lap(Stage::Occupancy, &mut self.times);
     }
+}
+
+/// The ray of each of the samples `kept` (at most `LANES`).
+pub(super) fn lane_rays(kept: &[u32], sample_ray: &[u32]) -> [u32; LANES] {
+    let mut rays = [0u32; LANES];
+    for (r, &s) in rays.iter_mut().zip(kept) {
+        *r = sample_ray[s as usize];
+    }
+    rays
 }
 
 /// The runs of equal rays in `sample_ray` (a ray's samples are consecutive): `(start, end)`
@@ -391,15 +454,15 @@ pub(super) fn embedding_of<'s>(shared: &Shared<'s>, r: usize) -> &'s [f32] {
 }
 
 /// The density MLP on up to `LANES` positions: their plane features into `rows.feats`, then
-/// the hidden layer and `rows.density_out`.
+/// the hidden layer and `rows.out`.
 pub(super) fn density_forward(
     shared: &Shared<'_>,
     positions: &[[f32; 3]],
-    rows: &mut Rows<'_>,
+    rows: &mut DensityRows<'_>,
     values: &mut [f32],
 ) {
     load_features(shared, positions, rows.feats, values);
-    density_rows(shared, rows.feats, rows.hidden, rows.density_out);
+    density_mlp(shared, rows.feats, rows.hidden, rows.out);
 }
 
 /// Plane features of up to `LANES` positions into `feats` (unused lanes zero), and each
@@ -441,7 +504,7 @@ pub(super) fn row_scale_weights(shared: &Shared<'_>) -> [f32; 4 * 64] {
     })
 }
 
-fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
+fn density_mlp(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
     let (l1, l2) = (
         shared.layout.layers[DENSITY_HIDDEN],
         shared.layout.layers[DENSITY_OUT],
@@ -463,7 +526,7 @@ fn density_rows(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mu
 }
 
 /// The colour MLP from its first layer's output `h1` (before the ReLU) to `rgb`.
-fn colour_rows(shared: &Shared<'_>, h1: &mut [Row], h2: &mut [Row], rgb: &mut [Row]) {
+fn colour_mlp(shared: &Shared<'_>, h1: &mut [Row], h2: &mut [Row], rgb: &mut [Row]) {
     let layers = &shared.layout.layers;
     let p = shared.mlp;
     let wb = |i: usize| {

@@ -93,7 +93,10 @@ impl<'a> Trainer<'a> {
         tally(&carver, &mut used.ray_batch);
         let mut chunk_list = heapless::Vec::new();
         let rows = activation_floats(c);
-        let geo_len = c.geo_features as usize;
+        let density_rows = density_activation_rows(c);
+        let (geo_len, inputs) = (c.geo_features as usize, c.density_inputs());
+        // Whole mini-batches: the stored activations are kept per mini-batch of LANES.
+        let samples = samples.div_ceil(LANES) * LANES;
         for (i, ((plane_grads, touched), (mlp_grads, frame_grads))) in plane_grad_parts
             .into_iter()
             .zip(mlp_grad_parts.into_iter().zip(frame_grad_parts))
@@ -108,12 +111,17 @@ impl<'a> Trainer<'a> {
             let (sigma, block) = block.split_at_mut(samples);
             let (geo, block) = block.split_at_mut(geo_len * samples);
             let (rgb, block) = block.split_at_mut(3 * samples);
-            let (d_sigma, d_rgb) = block.split_at_mut(t(samples));
+            let (d_sigma, block) = block.split_at_mut(t(samples));
+            let (d_rgb, block) = block.split_at_mut(t(3 * samples));
+            let (d_geo, block) = block.split_at_mut(t(geo_len * samples));
+            let (plane_values, block) = block.split_at_mut(t(3 * inputs * samples));
+            let (density_store, colour_store) = block.split_at_mut(t(density_rows * samples));
             let sample_ray = carver.take::<u32>(samples)?;
+            let kept_index = carver.take::<u32>(samples)?;
             let ray_start = carver.take::<u32>(chunk_rays + 1)?;
+            let kept_end = carver.take::<u32>(chunk_rays)?;
             let act = carver.take::<Row>(rows + t(rows))?;
             let (activations, gradients) = act.split_at_mut(rows);
-            let plane_values = carver.take::<f32>(LANES * 3 * c.density_inputs())?;
             let lane_major = carver.take::<f32>(t(LANES * widest_layer(c)))?;
             let ray_grads = carver.take::<f32>(t(chunk_rays * 6))?;
             let chunk = Chunk {
@@ -127,10 +135,15 @@ impl<'a> Trainer<'a> {
                 rgb: bytemuck::cast_slice_mut(rgb),
                 d_sigma,
                 d_rgb: bytemuck::cast_slice_mut(d_rgb),
+                d_geo,
                 sample_ray,
+                kept_index,
                 ray_start,
+                kept_end,
                 activations,
                 gradients,
+                density_store: bytemuck::cast_slice_mut(density_store),
+                colour_store: bytemuck::cast_slice_mut(colour_store),
                 plane_values,
                 lane_major,
                 ray_grads,

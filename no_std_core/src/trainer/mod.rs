@@ -16,7 +16,8 @@ use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
     MAX_CHUNKS, MAX_COLOUR_HIDDEN, MAX_SCALES, MemoryPlan, MlpLayout, POSE_PARAMS, RAY_FLOATS,
-    TexelUpdate, activation_floats, forward_sample_floats, sample_floats, widest_layer,
+    TexelUpdate, activation_floats, colour_activation_rows, density_activation_rows,
+    forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
@@ -68,14 +69,12 @@ impl Executor for Sequential {
 pub struct StepReport {
     /// Mean squared error per channel over the rays that were rendered.
     pub mse: f32,
-    /// Rays rendered and trained on (the batch less the dropped rays).
+    /// Rays rendered and trained on (the whole batch).
     pub rays: u32,
     /// Samples that reached the colour MLP and the backward pass (before the early stop).
     pub samples: u32,
     /// Samples marched through occupied space (all get a density evaluation).
     pub samples_marched: u32,
-    /// Rays dropped because their chunk's sample capacity ran out.
-    pub dropped_rays: u32,
     /// True if the loss or a gradient was not finite and the update was skipped.
     pub skipped: bool,
 }

@@ -47,7 +47,6 @@ impl<'a> Trainer<'a> {
             report.rays += chunk.report.rays;
             report.samples += chunk.report.samples;
             report.samples_marched += chunk.report.marched;
-            report.dropped_rays += chunk.report.dropped;
         }
         report.mse = if report.rays > 0 {
             squared_error / (3 * report.rays) as f32

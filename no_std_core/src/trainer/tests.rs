@@ -28,7 +28,8 @@ pub(super) fn small_config() -> Config {
     c.max_pixels_per_frame = 64;
     c.rays_per_batch = 32;
     c.chunks = 2;
-    c.samples_per_chunk = 16 * 24;
+    // Two rays per pass: every chunk trains in several passes.
+    c.samples_per_chunk = 64;
     c
 }
 
