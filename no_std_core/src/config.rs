@@ -288,13 +288,12 @@ impl Config {
     /// cameras about the target and start once the field has formed (300 steps), and a colour
     /// MLP twice as wide (the lamp's direction changes the shading, which the embedding can
     /// only express through it: +0.4 dB held-out on `lightbox` for 1.7x the training time),
-    /// and 2048 rays per step: rays through the target march about 40 samples, twice lego's,
-    /// so a step of 2048 costs about what a lego step of 4096 does (on `lightbox`, 4096 rays
-    /// scored 0.3 dB more after 500 steps in 1.7x the time). Measured against DEFAULT in the
-    /// README.
+    /// and 1536 rays per step: rays through the target march about 40 samples, twice lego's
+    /// (on `lightbox`, 500 steps: 1536 rays 30.40 dB in 33.6 s, 2048 rays 30.04 in 48.3 s,
+    /// 4096 rays 30.36 in 79.1 s; README). Measured against DEFAULT in the README.
     pub const SPACECRAFT: Config = Config {
         colour_hidden: 128,
-        rays_per_batch: 2048,
+        rays_per_batch: 1536,
         foreground_fraction: 0.75,
         pose_pivot: PosePivot::TargetOrigin,
         pose_warmup_steps: 300,
