@@ -129,7 +129,6 @@ impl Chunk<'_> {
         let values_len = 3 * features;
         let extent = shared.aabb.max - shared.aabb.min;
         let weights = row_scale_weights(shared);
-        self.d_geo[..marched * geo_len].fill(0.0);
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let b = base / LANES;

@@ -59,7 +59,7 @@ pub(super) struct Chunk<'a> {
     pub(super) rgb: &'a mut [[f32; 3]],
     pub(super) d_sigma: &'a mut [f32],
     pub(super) d_rgb: &'a mut [[f32; 3]],
-    /// d loss / d geometry features of each sample (zero for the samples cut off).
+    /// d loss / d geometry features of each kept sample (the only ones read).
     pub(super) d_geo: &'a mut [f32],
     pub(super) sample_ray: &'a mut [u32],
     /// Index of each kept sample (the colour MLP's mini-batches run over these).
