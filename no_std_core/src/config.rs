@@ -592,6 +592,9 @@ const fn align(n: usize) -> usize {
 /// Widest layer output, rounded up to a multiple of 8 (the lane-major gradient scratch).
 pub const fn widest_layer(c: &Config) -> usize {
     let mut w = c.density_hidden as usize;
+    if c.density_inputs() > w {
+        w = c.density_inputs();
+    }
     if c.density_outputs() > w {
         w = c.density_outputs();
     }

@@ -689,13 +689,7 @@ pub fn layer_backward(
     // sum of outer products with accumulators held in registers (no horizontal sums).
     let stride = outputs.div_ceil(8) * 8;
     let dyt = &mut dy_lane_major[..LANES * stride];
-    for (l, row) in dyt.chunks_exact_mut(stride.max(1)).enumerate() {
-        let (values, padding) = row.split_at_mut(outputs);
-        for (v, d) in values.iter_mut().zip(dy) {
-            *v = d[l];
-        }
-        padding.fill(0.0);
-    }
+    fused::to_lane_major(dy, stride, dyt);
     fused::outer_products(&[ONES], dyt, stride, outputs, db);
     fused::outer_products(x, dyt, stride, outputs, dw);
     if let Some(dx) = dx {

@@ -261,6 +261,32 @@ fn add_columns(sums: &[f32], k: usize, outputs: usize, col: usize, dst: &mut [f3
     }
 }
 
+/// `dst[l * stride + n] = rows[n][l]` for every lane `l` and `n < stride` (zero for
+/// `n >= rows.len()`): rows of `LANES` values into lane-major rows of `stride` values. Moves
+/// only, the same bits on every path.
+#[inline]
+pub fn to_lane_major(rows: &[Row], stride: usize, dst: &mut [f32]) {
+    let dst = &mut dst[..LANES * stride];
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    if wide_vectors() && rows.len() <= stride {
+        #[allow(unsafe_code)]
+        // SAFETY: as in `combine_rows`.
+        unsafe {
+            avx512::to_lane_major(rows, stride, dst)
+        };
+        return;
+    }
+    to_lane_major_portable(rows, stride, dst);
+}
+
+fn to_lane_major_portable(rows: &[Row], stride: usize, dst: &mut [f32]) {
+    for (l, row) in dst.chunks_exact_mut(stride.max(1)).enumerate() {
+        for (n, v) in row.iter_mut().enumerate() {
+            *v = rows.get(n).map_or(0.0, |r| r[l]);
+        }
+    }
+}
+
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
 mod detect {
     use core::sync::atomic::{AtomicBool, AtomicU8, Ordering::Relaxed};
@@ -333,9 +359,11 @@ pub fn allow_wide_vectors(allow: bool) {
 mod avx512 {
     use super::{LANES, Row, add_columns};
     use core::arch::x86_64::{
-        __m256, __m512, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
-        _mm256_storeu_ps, _mm512_fmadd_ps, _mm512_loadu_ps, _mm512_set1_ps, _mm512_setzero_ps,
-        _mm512_storeu_ps,
+        __m256, __m512, __mmask16, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
+        _mm256_setzero_ps, _mm256_storeu_ps, _mm512_castpd_ps, _mm512_castps_pd, _mm512_fmadd_ps,
+        _mm512_loadu_ps, _mm512_mask_storeu_ps, _mm512_set1_ps, _mm512_setzero_ps,
+        _mm512_shuffle_f32x4, _mm512_storeu_ps, _mm512_unpackhi_pd, _mm512_unpackhi_ps,
+        _mm512_unpacklo_pd, _mm512_unpacklo_ps,
     };
 
     /// Registers per lane-row.
@@ -355,6 +383,72 @@ mod avx512 {
         for (i, vi) in v.into_iter().enumerate() {
             // SAFETY: register `i` writes floats 16 i .. 16 i + 16 of the row's LANES.
             unsafe { _mm512_storeu_ps(row.as_mut_ptr().add(16 * i), vi) };
+        }
+    }
+
+    /// The 16 x 16 transpose of `r` (sixteen rows of sixteen floats).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn transpose16(r: [__m512; 16]) -> [__m512; 16] {
+        // Pairs of floats, then pairs of pairs, then 128-bit quarters twice.
+        let t: [__m512; 16] = core::array::from_fn(|i| {
+            let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+            if i % 2 == 0 {
+                _mm512_unpacklo_ps(a, b)
+            } else {
+                _mm512_unpackhi_ps(a, b)
+            }
+        });
+        let u: [__m512; 16] = core::array::from_fn(|i| {
+            let g = i / 4 * 4;
+            let (a, b) = (
+                _mm512_castps_pd(t[g + (i % 4) / 2]),
+                _mm512_castps_pd(t[g + 2 + (i % 4) / 2]),
+            );
+            _mm512_castpd_ps(if i % 2 == 0 {
+                _mm512_unpacklo_pd(a, b)
+            } else {
+                _mm512_unpackhi_pd(a, b)
+            })
+        });
+        let v: [__m512; 16] = core::array::from_fn(|i| {
+            let g = i / 8 * 8;
+            let (a, b) = (u[g + i % 4], u[g + 4 + i % 4]);
+            if i % 8 < 4 {
+                _mm512_shuffle_f32x4::<0x88>(a, b)
+            } else {
+                _mm512_shuffle_f32x4::<0xdd>(a, b)
+            }
+        });
+        core::array::from_fn(|i| {
+            let (a, b) = (v[i % 8], v[8 + i % 8]);
+            if i < 8 {
+                _mm512_shuffle_f32x4::<0x88>(a, b)
+            } else {
+                _mm512_shuffle_f32x4::<0xdd>(a, b)
+            }
+        })
+    }
+
+    /// [`super::to_lane_major`] in blocks of 16 rows by 16 lanes.
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn to_lane_major(rows: &[Row], stride: usize, dst: &mut [f32]) {
+        for n0 in (0..stride).step_by(16) {
+            let width = (stride - n0).min(16);
+            let mask: __mmask16 = ((1u32 << width) - 1) as __mmask16;
+            for l0 in (0..LANES).step_by(16) {
+                let block = core::array::from_fn(|i| match rows.get(n0 + i) {
+                    // SAFETY: lanes l0 .. l0 + 16 <= LANES of the row.
+                    Some(row) => unsafe { _mm512_loadu_ps(row.as_ptr().add(l0)) },
+                    None => _mm512_setzero_ps(),
+                });
+                for (i, v) in transpose16(block).into_iter().enumerate() {
+                    let at = (l0 + i) * stride + n0;
+                    let out = &mut dst[at..at + width];
+                    // SAFETY: the mask writes the `width` floats of `out`.
+                    unsafe { _mm512_mask_storeu_ps(out.as_mut_ptr(), mask, v) };
+                }
+            }
         }
     }
 
@@ -632,6 +726,48 @@ mod tests {
         a.iter()
             .zip(b)
             .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
+    }
+
+    #[test]
+    fn the_lane_major_transpose_moves_every_value_to_its_place() {
+        let mut rng = Rng::new(17);
+        let rows: [Row; 40] = awkward_rows(&mut rng);
+        for (used, stride) in [
+            (0, 8),
+            (3, 8),
+            (15, 16),
+            (16, 16),
+            (17, 24),
+            (40, 40),
+            (33, 64),
+        ] {
+            for wide in [false, true] {
+                let mut lane_major = [f32::NAN; LANES * 64];
+                let dst = &mut lane_major[..LANES * stride];
+                match wide {
+                    false => to_lane_major_portable(&rows[..used], stride, dst),
+                    #[cfg(all(
+                        target_arch = "x86_64",
+                        target_feature = "fma",
+                        target_feature = "avx"
+                    ))]
+                    #[allow(unsafe_code)]
+                    // SAFETY: `wide_vectors` said the CPU runs AVX-512F.
+                    true if wide_vectors() => unsafe {
+                        avx512::to_lane_major(&rows[..used], stride, dst)
+                    },
+                    true => continue,
+                }
+                for l in 0..LANES {
+                    for n in 0..stride {
+                        let expected = if n < used { rows[n][l] } else { 0.0 };
+                        let got = lane_major[l * stride + n];
+                        assert!(same_bits(&[got], &[expected]), "{used} {stride} {l} {n}");
+                    }
+                }
+                assert!(lane_major[LANES * stride..].iter().all(|v| v.is_nan()));
+            }
+        }
     }
 
     #[test]

@@ -311,11 +311,14 @@ impl Chunk<'_> {
             );
             laps.lap(Stage::DensityBackward, &mut self.times);
 
-            let mut d_feat = [0.0f32; 4 * 64];
+            // Each lane's feature gradients side by side (the lookup's backward takes them).
+            fused::to_lane_major(grad.feats, features, self.lane_major);
             for l in (0..lanes).filter(|&l| kept[l]) {
                 let s = base + l;
-                for k in 0..features {
-                    d_feat[k] = grad.feats[k][l] * weights[k];
+                let mut d_feat = [0.0f32; 4 * 64];
+                let lane = &self.lane_major[l * features..(l + 1) * features];
+                for ((d, g), w) in d_feat.iter_mut().zip(lane).zip(&weights) {
+                    *d = g * w;
                 }
                 let x = Vec3::from_array(self.positions[s]);
                 let u = shared.aabb.normalise(x);
