@@ -9,7 +9,7 @@ impl<'a> Trainer<'a> {
     pub fn step<E: Executor>(&mut self, executor: &E) -> Result<StepReport, Error> {
         self.require_training()?;
         self.forward_backward(executor)?;
-        let report = self.reduce_and_apply();
+        let report = self.reduce_and_apply(executor);
         self.state.step += 1;
         if self.state.step.is_multiple_of(self.config.occupancy_every) {
             self.refresh_occupancy(executor);
@@ -21,7 +21,7 @@ impl<'a> Trainer<'a> {
     /// gradients in the chunks' buffers.
     pub(super) fn forward_backward<E: Executor>(&mut self, executor: &E) -> Result<(), Error> {
         let mut laps = self.profile.laps();
-        self.sample_rays()?;
+        self.sample_rays(executor)?;
         self.profile
             .serial(&mut laps, Bucket::Train, Stage::RaySampling);
         let rays = self.config.rays_per_batch as usize;
@@ -33,16 +33,14 @@ impl<'a> Trainer<'a> {
         Ok(())
     }
 
-    /// Sum the chunks' gradients in chunk order, check them, and apply Adam.
-    fn reduce_and_apply(&mut self) -> StepReport {
+    /// Sum the chunks' gradients in chunk order, check them, and apply Adam. The planes'
+    /// part runs in parallel over ranges of texels (each texel's sums and update are its own,
+    /// so the ranges change no bit).
+    fn reduce_and_apply<E: Executor>(&mut self, executor: &E) -> StepReport {
         let mut laps = self.profile.laps();
-        let (first, rest) = match self.chunks.split_first_mut() {
-            Some(split) => split,
-            None => return StepReport::default(),
-        };
         let mut report = StepReport::default();
         let mut squared_error = 0.0f32;
-        for chunk in core::iter::once(&*first).chain(rest.iter()) {
+        for chunk in self.chunks.iter() {
             squared_error += chunk.report.squared_error;
             report.rays += chunk.report.rays;
             report.samples += chunk.report.samples;
@@ -54,7 +52,9 @@ impl<'a> Trainer<'a> {
             0.0
         };
         let mut finite = squared_error.is_finite();
-
+        let Some((first, rest)) = self.chunks.split_first_mut() else {
+            return report;
+        };
         for other in rest.iter_mut() {
             for (a, b) in first.mlp_grads.iter_mut().zip(other.mlp_grads.iter_mut()) {
                 *a += *b;
@@ -74,47 +74,38 @@ impl<'a> Trainer<'a> {
             .iter()
             .chain(first.frame_grads.iter())
             .all(|g| g.is_finite());
-        let f = self.config.features as usize;
-        for (w, union) in self.touched_union.iter_mut().enumerate() {
-            let mut bits = first.touched[w];
-            first.touched[w] = 0;
-            for other in rest.iter_mut() {
-                bits |= other.touched[w];
-                other.touched[w] = 0;
-            }
-            *union = bits;
-        }
-        let tv_weight = self.config.plane_tv_weight;
-        for texel in set_bits(self.touched_union) {
-            let range = texel * f..(texel + 1) * f;
-            for other in rest.iter_mut() {
-                for (a, b) in first.plane_grads[range.clone()]
-                    .iter_mut()
-                    .zip(&mut other.plane_grads[range.clone()])
-                {
-                    *a += *b;
-                    *b = 0.0;
-                }
-            }
-            if tv_weight > 0.0 {
-                field::plane_tv_gradient(
-                    self.planes,
-                    &self.geometry,
-                    tv_weight,
-                    texel,
-                    &mut first.plane_grads[range.clone()],
-                );
-            }
-            finite &= first.plane_grads[range].iter().all(|g| g.is_finite());
-        }
 
+        let f = self.config.features as usize;
+        let tv_weight = self.config.plane_tv_weight;
+        let (planes, geometry) = (&*self.planes, &self.geometry);
+        let parts_count = self.chunks.len();
+        let mut sums = texel_sums(&mut self.chunks, self.touched_union, f, parts_count);
+        executor.for_each(&mut sums, |part| {
+            part.finite = part.reduce(f, |texel, grad| {
+                if tv_weight > 0.0 {
+                    field::plane_tv_gradient(planes, geometry, tv_weight, texel, grad);
+                }
+            });
+        });
+        finite &= sums.iter().all(|part| part.finite);
+        drop(sums);
         self.profile
             .serial(&mut laps, Bucket::Train, Stage::Reduction);
+
         let c = &self.config;
-        if finite {
+        let lr = optim::learning_rate(c, self.state.step);
+        let adam = if finite {
             self.state.updates += 1;
-            let lr = optim::learning_rate(c, self.state.step);
-            let adam = AdamStep::new(c, lr, self.state.updates);
+            Some(AdamStep::new(c, lr, self.state.updates))
+        } else {
+            self.state.skipped += 1;
+            report.skipped = true;
+            None
+        };
+        let Some(first) = self.chunks.first_mut() else {
+            return report;
+        };
+        if let Some(adam) = &adam {
             adam.apply(self.mlp, first.mlp_grads, self.mlp_m, self.mlp_v);
             let n = c.frame_params();
             let dim = c.embedding_dim as usize;
@@ -140,39 +131,184 @@ impl<'a> Trainer<'a> {
                     );
                 }
             }
-            let master = !self.plane_master.is_empty();
-            for texel in set_bits(self.touched_union) {
-                for i in texel * f..(texel + 1) * f {
-                    let delta = adam.delta(
-                        first.plane_grads[i],
-                        &mut self.plane_m[i],
-                        &mut self.plane_v[i],
-                    );
-                    let master = if master {
-                        self.plane_master.get_mut(i)
-                    } else {
-                        None
-                    };
-                    optim::store_texel(
-                        &mut self.planes[i],
-                        master,
-                        delta,
-                        c.seed,
-                        self.state.step,
-                        i,
-                    );
-                }
-            }
-        } else {
-            self.state.skipped += 1;
-            report.skipped = true;
         }
         first.mlp_grads.fill(0.0);
         first.frame_grads.fill(0.0);
-        for texel in set_bits(self.touched_union) {
-            first.plane_grads[texel * f..(texel + 1) * f].fill(0.0);
-        }
+        let mut updates = TexelUpdate::parts(
+            first.plane_grads,
+            self.touched_union,
+            self.planes,
+            self.plane_master,
+            self.plane_m,
+            self.plane_v,
+            f,
+            parts_count,
+        );
+        let (seed, step) = (c.seed, self.state.step);
+        executor.for_each(&mut updates, |part| {
+            part.apply(adam.as_ref(), f, seed, step)
+        });
         self.profile.serial(&mut laps, Bucket::Train, Stage::Adam);
         report
+    }
+}
+
+/// Texels `first_texel ..` (whole bitmap words): each chunk's gradients and touched bits of
+/// them, to be summed into the first chunk's.
+struct TexelSum<'p> {
+    first_texel: usize,
+    union: &'p mut [u64],
+    grads: heapless::Vec<&'p mut [f32], MAX_CHUNKS>,
+    touched: heapless::Vec<&'p mut [u64], MAX_CHUNKS>,
+    finite: bool,
+}
+
+/// The texels split into `parts` ranges of whole bitmap words.
+fn texel_sums<'p>(
+    chunks: &'p mut [Chunk<'_>],
+    union: &'p mut [u64],
+    f: usize,
+    parts: usize,
+) -> heapless::Vec<TexelSum<'p>, MAX_CHUNKS> {
+    let words = union.len().div_ceil(parts.max(1)).max(1);
+    let mut out: heapless::Vec<TexelSum<'p>, MAX_CHUNKS> = heapless::Vec::new();
+    for (i, union) in union.chunks_mut(words).enumerate() {
+        let _ = out.push(TexelSum {
+            first_texel: i * words * 64,
+            union,
+            grads: heapless::Vec::new(),
+            touched: heapless::Vec::new(),
+            finite: true,
+        });
+    }
+    for chunk in chunks.iter_mut() {
+        let mut grads = &mut *chunk.plane_grads;
+        let mut touched = &mut *chunk.touched;
+        for part in out.iter_mut() {
+            let (g, g_rest) = grads.split_at_mut((part.union.len() * 64 * f).min(grads.len()));
+            let (t, t_rest) = touched.split_at_mut(part.union.len().min(touched.len()));
+            let _ = part.grads.push(g);
+            let _ = part.touched.push(t);
+            (grads, touched) = (g_rest, t_rest);
+        }
+    }
+    out
+}
+
+impl TexelSum<'_> {
+    /// The union of the touched bits (clearing the chunks'), the sums in chunk order into
+    /// the first chunk's gradients (clearing the others'), `extra` on each touched texel's
+    /// sum. Returns whether every sum is finite.
+    fn reduce(&mut self, f: usize, extra: impl Fn(usize, &mut [f32])) -> bool {
+        let mut finite = true;
+        for (w, union) in self.union.iter_mut().enumerate() {
+            let mut bits = 0;
+            for touched in self.touched.iter_mut() {
+                if let Some(word) = touched.get_mut(w) {
+                    bits |= *word;
+                    *word = 0;
+                }
+            }
+            *union = bits;
+        }
+        let Some((first, rest)) = self.grads.split_first_mut() else {
+            return finite;
+        };
+        for local in set_bits(self.union) {
+            let range = local * f..(local + 1) * f;
+            for other in rest.iter_mut() {
+                for (a, b) in first[range.clone()]
+                    .iter_mut()
+                    .zip(&mut other[range.clone()])
+                {
+                    *a += *b;
+                    *b = 0.0;
+                }
+            }
+            extra(self.first_texel + local, &mut first[range.clone()]);
+            finite &= first[range].iter().all(|g| g.is_finite());
+        }
+        finite
+    }
+}
+
+/// Texels `first_texel ..` (whole bitmap words): their summed gradients, touched bits and
+/// parameters, for Adam.
+struct TexelUpdate<'p> {
+    first_texel: usize,
+    union: &'p [u64],
+    grads: &'p mut [f32],
+    planes: &'p mut [f16],
+    master: &'p mut [f32],
+    m: &'p mut [f32],
+    v: &'p mut [f32],
+}
+
+impl<'p> TexelUpdate<'p> {
+    /// The texels split into `parts` ranges of whole bitmap words (`master` may be empty).
+    #[allow(clippy::too_many_arguments)]
+    fn parts(
+        mut grads: &'p mut [f32],
+        union: &'p [u64],
+        mut planes: &'p mut [f16],
+        mut master: &'p mut [f32],
+        mut m: &'p mut [f32],
+        mut v: &'p mut [f32],
+        f: usize,
+        parts: usize,
+    ) -> heapless::Vec<TexelUpdate<'p>, MAX_CHUNKS> {
+        let words = union.len().div_ceil(parts.max(1)).max(1);
+        let mut out = heapless::Vec::new();
+        for (i, union) in union.chunks(words).enumerate() {
+            let len = union.len() * 64 * f;
+            let take = |s: &mut &'p mut [f32]| {
+                let whole = core::mem::take(s);
+                let (head, tail) = whole.split_at_mut(len.min(whole.len()));
+                *s = tail;
+                head
+            };
+            let (g, mm, vv, ms) = (
+                take(&mut grads),
+                take(&mut m),
+                take(&mut v),
+                take(&mut master),
+            );
+            let whole = core::mem::take(&mut planes);
+            let (p, p_rest) = whole.split_at_mut(len.min(whole.len()));
+            planes = p_rest;
+            let _ = out.push(TexelUpdate {
+                first_texel: i * words * 64,
+                union,
+                grads: g,
+                planes: p,
+                master: ms,
+                m: mm,
+                v: vv,
+            });
+        }
+        out
+    }
+
+    /// Adam on every touched texel (none without `adam`, a skipped step), then their
+    /// gradients cleared.
+    fn apply(&mut self, adam: Option<&AdamStep>, f: usize, seed: u64, step: u32) {
+        let first = self.first_texel * f;
+        for local in set_bits(self.union) {
+            let range = local * f..(local + 1) * f;
+            if let Some(adam) = adam {
+                for i in range.clone() {
+                    let delta = adam.delta(self.grads[i], &mut self.m[i], &mut self.v[i]);
+                    optim::store_texel(
+                        &mut self.planes[i],
+                        self.master.get_mut(i),
+                        delta,
+                        seed,
+                        step,
+                        first + i,
+                    );
+                }
+            }
+            self.grads[range].fill(0.0);
+        }
     }
 }

@@ -209,7 +209,7 @@ fn masked_out_pixels_train_against_a_random_background_per_ray() {
         trainer
             .set_frame(0, camera, pose, &pixels, Some(&mask))
             .unwrap();
-        trainer.sample_rays().unwrap();
+        trainer.sample_rays(&Sequential).unwrap();
         let (mut target_rays, mut sky_rays, mut lowest, mut highest) = (0, 0, 1.0f32, 0.0f32);
         for ray in trainer.rays.iter() {
             let (target, background) = (ray.target, ray.background);
