@@ -46,8 +46,8 @@ pub struct BenchArgs {
     /// count (profile_<threads>t.png) into this folder.
     #[arg(long, requires = "profile")]
     out: Option<PathBuf>,
-    /// Keep the MLP kernels to eight lanes (AVX2) on a CPU with AVX-512, to compare the two
-    /// on one machine (the results are the same bits either way).
+    /// Keep the MLP kernels, plane lookups and transposes to eight lanes (AVX2) on a CPU with
+    /// AVX-512, to compare the two on one machine (the results are the same bits either way).
     #[arg(long)]
     no_avx512: bool,
 }
@@ -68,7 +68,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     println!("{}", machine::cpu_summary());
     orbit_nerf_core::allow_wide_vectors(!args.no_avx512);
     println!(
-        "MLP kernels: {}",
+        "MLP kernels and plane lookups: {}",
         if orbit_nerf_core::wide_vectors() {
             "16 lanes per instruction (AVX-512)"
         } else {
