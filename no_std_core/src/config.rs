@@ -589,7 +589,9 @@ const fn align(n: usize) -> usize {
     n.div_ceil(PART_ALIGN) * PART_ALIGN
 }
 
-/// Widest layer output, rounded up to a multiple of 8 (the lane-major gradient scratch).
+/// Widest layer output (or the density MLP's inputs, if more), rounded up to a multiple of 8:
+/// the lane-major scratch, which holds a layer's output gradients and the planes' feature
+/// gradients.
 pub const fn widest_layer(c: &Config) -> usize {
     let mut w = c.density_hidden as usize;
     if c.density_inputs() > w {
