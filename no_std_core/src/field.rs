@@ -877,6 +877,7 @@ mod tests {
     /// at random positions, outside the box and at NaN, by both paths.
     #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
     fn wide_lookup_matches<const F: usize>() {
+        use crate::fused::tests::same_bits;
         let mut c = Config::DEFAULT;
         c.scales = 2;
         c.resolutions = [4, 6, 0, 0];
@@ -945,12 +946,6 @@ mod tests {
         assert!(same_bits(&grads[0], &grads[1]), "grads {F}");
         assert_eq!(touched[0], touched[1]);
         assert_ne!(touched[0], [0; 3]);
-    }
-
-    fn same_bits(a: &[f32], b: &[f32]) -> bool {
-        a.iter()
-            .zip(b)
-            .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))
     }
 
     #[test]

@@ -637,7 +637,7 @@ mod avx512 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::rng::Rng;
 
@@ -722,7 +722,8 @@ mod tests {
         core::array::from_fn(|_| core::array::from_fn(|_| awkward(rng)))
     }
 
-    fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    /// Equal bits, any NaN equal to any NaN (the kernels' twins may carry different payloads).
+    pub(crate) fn same_bits(a: &[f32], b: &[f32]) -> bool {
         a.iter()
             .zip(b)
             .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan()))

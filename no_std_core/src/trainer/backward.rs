@@ -313,9 +313,9 @@ impl Chunk<'_> {
 
             // Each lane's feature gradients side by side (the lookup's backward takes them).
             fused::to_lane_major(grad.feats, features, self.lane_major);
+            let mut d_feat = [0.0f32; 4 * 64];
             for l in (0..lanes).filter(|&l| kept[l]) {
                 let s = base + l;
-                let mut d_feat = [0.0f32; 4 * 64];
                 let lane = &self.lane_major[l * features..(l + 1) * features];
                 for ((d, g), w) in d_feat.iter_mut().zip(lane).zip(&weights) {
                     *d = g * w;
