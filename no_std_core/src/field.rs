@@ -685,13 +685,22 @@ pub fn layer_backward(
     dy_lane_major: &mut [f32],
 ) {
     let outputs = dy.len();
-    // Transpose dy to lane-major rows padded to a multiple of 8, so the weight gradient is a
-    // sum of outer products with accumulators held in registers (no horizontal sums).
-    let stride = outputs.div_ceil(8) * 8;
-    let dyt = &mut dy_lane_major[..LANES * stride];
-    fused::to_lane_major(dy, stride, dyt);
-    fused::outer_products(&[ONES], dyt, stride, outputs, db);
-    fused::outer_products(x, dyt, stride, outputs, dw);
+    if outputs <= fused::FEW_OUTPUTS && fused::few_outputs_products(x, dy, dy_lane_major, dw) {
+        // The bias gradient as `outer_products` sums a row of ones: each output's lanes in
+        // order from zero (a fused 1 * y + a is the rounded y + a).
+        for (d, row) in db.iter_mut().zip(dy) {
+            *d += row.iter().fold(0.0f32, |a, y| a + y);
+        }
+    } else {
+        // Transpose dy to lane-major rows padded to a multiple of 8, so the weight gradient
+        // is a sum of outer products with accumulators held in registers (no horizontal
+        // sums).
+        let stride = outputs.div_ceil(8) * 8;
+        let dyt = &mut dy_lane_major[..LANES * stride];
+        fused::to_lane_major(dy, stride, dyt);
+        fused::outer_products(&[ONES], dyt, stride, outputs, db);
+        fused::outer_products(x, dyt, stride, outputs, dw);
+    }
     if let Some(dx) = dx {
         dx.fill([0.0; LANES]);
         fused::combine_rows(dx, dy, |k, n| w[k * outputs + n]);

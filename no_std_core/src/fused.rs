@@ -261,6 +261,33 @@ fn add_columns(sums: &[f32], k: usize, outputs: usize, col: usize, dst: &mut [f3
     }
 }
 
+/// Layers with up to this many outputs (a colour MLP's RGB) take their weight gradient from
+/// [`few_outputs_products`] where the CPU has AVX-512.
+pub const FEW_OUTPUTS: usize = 4;
+
+/// [`outer_products`] of `coefs` with a layer's output gradients `dy` (rows, not lane-major)
+/// for a layer of at most [`FEW_OUTPUTS`] outputs, with AVX-512. A lane-row of so few outputs
+/// fills a fraction of a register, so the inputs go lane-major instead (into `scratch`,
+/// `LANES` rows of `coefs.len()` rounded up to 16) and the registers run along the inputs.
+/// Every sum still fuses its lanes in order from zero before it is added to `dst`: the bits
+/// of [`outer_products`]. Returns `false`, having done nothing, where it does not apply (no
+/// AVX-512, more outputs, a smaller `scratch` or `dst`).
+pub fn few_outputs_products(
+    coefs: &[Row],
+    dy: &[Row],
+    scratch: &mut [f32],
+    dst: &mut [f32],
+) -> bool {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    if wide_vectors() {
+        #[allow(unsafe_code)]
+        // SAFETY: as in `combine_rows`.
+        return unsafe { avx512::few_outputs_products(coefs, dy, scratch, dst) };
+    }
+    let _ = (coefs, dy, scratch, dst);
+    false
+}
+
 /// `dst[l * stride + n] = rows[n][l]` for every lane `l` and `n < stride` (zero for
 /// `n >= rows.len()`): rows of `LANES` values into lane-major rows of `stride` values. Moves
 /// only, the same bits on every path.
@@ -503,6 +530,92 @@ mod avx512 {
         }
         for (o, a) in out.iter_mut().zip(acc) {
             store_row(o, a);
+        }
+    }
+
+    /// [`super::few_outputs_products`].
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn few_outputs_products(
+        coefs: &[Row],
+        dy: &[Row],
+        scratch: &mut [f32],
+        dst: &mut [f32],
+    ) -> bool {
+        let (inputs, outputs) = (coefs.len(), dy.len());
+        let stride = inputs.next_multiple_of(16);
+        let Some(xt) = scratch.get_mut(..LANES * stride) else {
+            return false;
+        };
+        let Some(dst) = dst.get_mut(..inputs * outputs) else {
+            return false;
+        };
+        match dy {
+            [a] => few_outputs::<1>(inputs, xt, coefs, &[a], dst),
+            [a, b] => few_outputs::<2>(inputs, xt, coefs, &[a, b], dst),
+            [a, b, c] => few_outputs::<3>(inputs, xt, coefs, &[a, b, c], dst),
+            [a, b, c, d] => few_outputs::<4>(inputs, xt, coefs, &[a, b, c, d], dst),
+            _ => return false,
+        }
+        true
+    }
+
+    /// The inputs lane-major into `xt`, then 64 inputs at a time (16 at a time for the rest).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn few_outputs<const N: usize>(
+        inputs: usize,
+        xt: &mut [f32],
+        coefs: &[Row],
+        dy: &[&Row; N],
+        dst: &mut [f32],
+    ) {
+        let stride = xt.len() / LANES;
+        to_lane_major(coefs, stride, xt);
+        let mut k = 0;
+        while k + 64 <= stride {
+            few_outputs_tile::<N, 4>(inputs, xt, stride, k, dy, dst);
+            k += 64;
+        }
+        while k < stride {
+            few_outputs_tile::<N, 1>(inputs, xt, stride, k, dy, dst);
+            k += 16;
+        }
+    }
+
+    /// Inputs `k0 .. k0 + 16 V` for all `N` outputs: `N V` accumulators.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn few_outputs_tile<const N: usize, const V: usize>(
+        inputs: usize,
+        xt: &[f32],
+        stride: usize,
+        k0: usize,
+        dy: &[&Row; N],
+        dst: &mut [f32],
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); V]; N];
+        for l in 0..LANES {
+            let row = &xt[l * stride + k0..l * stride + k0 + 16 * V];
+            // SAFETY: register `i` reads floats 16 i .. 16 i + 16 of `row`.
+            let x: [__m512; V] =
+                core::array::from_fn(|i| unsafe { _mm512_loadu_ps(row.as_ptr().add(16 * i)) });
+            for (a, dy) in acc.iter_mut().zip(dy) {
+                let d = _mm512_set1_ps(dy[l]);
+                for i in 0..V {
+                    a[i] = _mm512_fmadd_ps(x[i], d, a[i]);
+                }
+            }
+        }
+        for (n, a) in acc.into_iter().enumerate() {
+            for (i, ai) in a.into_iter().enumerate() {
+                let mut sums = [0.0f32; 16];
+                // SAFETY: writes the 16 floats of `sums`.
+                unsafe { _mm512_storeu_ps(sums.as_mut_ptr(), ai) };
+                let first = k0 + 16 * i;
+                for (k, s) in (first..inputs).zip(sums) {
+                    dst[k * N + n] += s;
+                }
+            }
         }
     }
 
@@ -822,5 +935,56 @@ pub(crate) mod tests {
             outer_products_narrow(&inputs[..used], &dyt, stride, outputs, &mut narrow);
             assert!(same_bits(&wide, &narrow), "{outputs} {used}");
         }
+    }
+
+    #[test]
+    fn the_few_outputs_products_give_the_bits_of_the_outer_products() {
+        if !wide_vectors() {
+            return; // Nothing to compare on a CPU without AVX-512.
+        }
+        let mut rng = Rng::new(19);
+        let inputs: [Row; 70] = awkward_rows(&mut rng);
+        let dy: [Row; FEW_OUTPUTS] = awkward_rows(&mut rng);
+        // Every tile: 64 inputs at a time, 16 at a time, a part-filled last 16.
+        for used in [1, 15, 16, 17, 64, 70] {
+            for outputs in 1..=FEW_OUTPUTS {
+                let start: [f32; 70 * FEW_OUTPUTS] = core::array::from_fn(|_| awkward(&mut rng));
+                let mut scratch = [f32::NAN; LANES * 80];
+                let mut few = start;
+                assert!(few_outputs_products(
+                    &inputs[..used],
+                    &dy[..outputs],
+                    &mut scratch,
+                    &mut few
+                ));
+                let mut dyt = [0.0f32; LANES * 8];
+                to_lane_major_portable(&dy[..outputs], 8, &mut dyt);
+                let mut reference = start;
+                outer_products_narrow(&inputs[..used], &dyt, 8, outputs, &mut reference);
+                assert!(same_bits(&few, &reference), "{outputs} {used}");
+            }
+        }
+        // Where it does not apply it leaves everything as it was.
+        let mut dst = [1.0f32; 70 * 8];
+        let mut scratch = [0.0f32; LANES * 80];
+        assert!(!few_outputs_products(
+            &inputs,
+            &[dy[0]; 5],
+            &mut scratch,
+            &mut dst
+        ));
+        assert!(!few_outputs_products(
+            &inputs,
+            &dy,
+            &mut scratch[..LANES * 64],
+            &mut dst
+        ));
+        assert!(!few_outputs_products(
+            &inputs,
+            &dy,
+            &mut scratch,
+            &mut dst[..69]
+        ));
+        assert!(dst.iter().all(|&v| v == 1.0));
     }
 }
