@@ -674,7 +674,9 @@ pub fn layer_forward_onto(w: &[f32], x: &[Row], y: &mut [Row]) {
 
 /// Backward of `layer_forward`: accumulates d w and d b from `dy`, and (if `dx` is given)
 /// writes d x. Lanes whose `dy` is zero contribute nothing, which is how partial
-/// mini-batches are masked.
+/// mini-batches are masked. Returns whether it left `dy` lane-major in `dy_lane_major`
+/// (rows of `dy.len()` rounded up to 8), which every layer of more than
+/// `fused::FEW_OUTPUTS` outputs does.
 pub fn layer_backward(
     w: &[f32],
     x: &[Row],
@@ -683,9 +685,11 @@ pub fn layer_backward(
     dw: &mut [f32],
     db: &mut [f32],
     dy_lane_major: &mut [f32],
-) {
+) -> bool {
     let outputs = dy.len();
-    if outputs <= fused::FEW_OUTPUTS && fused::few_outputs_products(x, dy, dy_lane_major, dw) {
+    let few =
+        outputs <= fused::FEW_OUTPUTS && fused::few_outputs_products(x, dy, dy_lane_major, dw);
+    if few {
         // The bias gradient as `outer_products` sums a row of ones: each output's lanes in
         // order from zero (a fused 1 * y + a is the rounded y + a).
         for (d, row) in db.iter_mut().zip(dy) {
@@ -705,6 +709,7 @@ pub fn layer_backward(
         dx.fill([0.0; LANES]);
         fused::combine_rows(dx, dy, |k, n| w[k * outputs + n]);
     }
+    !few
 }
 
 const ONES: Row = [1.0; LANES];

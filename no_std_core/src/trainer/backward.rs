@@ -180,7 +180,7 @@ impl Chunk<'_> {
             let w1 = &p[l1.weights..l1.biases];
             let (dw1, db1) = g[l1.weights..l1.biases + hidden].split_at_mut(l1.biases - l1.weights);
             let geo_rows = sh_len * hidden..(sh_len + geo_len) * hidden;
-            field::layer_backward(
+            let lane_major = field::layer_backward(
                 &w1[geo_rows.clone()],
                 act.geo,
                 grad.hidden1,
@@ -197,11 +197,24 @@ impl Chunk<'_> {
             let rays = lane_rays(kept, self.sample_ray);
             let mut sum = [0.0f32; MAX_COLOUR_HIDDEN];
             let sum = &mut sum[..hidden];
+            let stride = hidden.div_ceil(8) * 8;
             for (start, end) in ray_runs(&rays[..lanes]) {
                 let r = rays[start] as usize;
-                // d loss / d ray term: the run's first-layer gradients summed over its lanes.
-                for (s, row) in sum.iter_mut().zip(grad.hidden1.iter()) {
-                    *s = row[start..end].iter().sum();
+                // d loss / d ray term: the run's first-layer gradients summed over its lanes
+                // in order (from -0.0, as `Iterator::sum`), a lane-major row at a time where
+                // the layer's backward pass left them so (the adds then run side by side).
+                sum.fill(-0.0);
+                if lane_major {
+                    for l in start..end {
+                        let row = &self.lane_major[l * stride..l * stride + hidden];
+                        for (s, g) in sum.iter_mut().zip(row) {
+                            *s += g;
+                        }
+                    }
+                } else {
+                    for (s, row) in sum.iter_mut().zip(grad.hidden1.iter()) {
+                        *s = row[start..end].iter().sum();
+                    }
                 }
                 let (_, d) = Self::ray(shared, r);
                 let mut sh = [0.0f32; 16];
