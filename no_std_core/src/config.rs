@@ -623,16 +623,11 @@ pub const fn activation_floats(c: &Config) -> usize {
 }
 
 /// f32 values stored per sample for training: the forward ones, the gradients of the
-/// density, the colour and the geometry features, and the activations the backward pass
-/// reads instead of recomputing them: the density MLP's rows, each plane's bilinear value
-/// (3 per feature) and the colour MLP's rows.
+/// density and the colour, and the activations the backward pass reads instead of
+/// recomputing them: the density MLP's rows, each plane's bilinear value (3 per feature)
+/// and the colour MLP's rows.
 pub const fn sample_floats(c: &Config) -> usize {
-    forward_sample_floats(c)
-        + 1
-        + RGB
-        + c.geo_features as usize
-        + activation_floats(c)
-        + 3 * c.density_inputs()
+    forward_sample_floats(c) + 1 + RGB + activation_floats(c) + 3 * c.density_inputs()
 }
 
 /// f32 values per sample that rendering uses: position (3), density, geometry features,

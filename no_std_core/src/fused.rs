@@ -314,6 +314,60 @@ fn to_lane_major_portable(rows: &[Row], stride: usize, dst: &mut [f32]) {
     }
 }
 
+/// Moves the kept lanes of `batches` mini-batches to the front, in order: `store` holds
+/// mini-batches of `batch_rows` rows each, `kept(b)` marks batch `b`'s kept lanes (bit `l`
+/// for lane `l`; called once per batch, in order), and afterwards the `j`-th kept lane
+/// (counting batch by batch) sits in batch `j / LANES`, lane `j % LANES`, in each row.
+/// Places after the last kept lane keep stale values.
+/// Moves only, the same bits on every path. Does nothing if `store` holds fewer batches.
+pub fn compact_lanes(
+    store: &mut [Row],
+    batch_rows: usize,
+    batches: usize,
+    kept: impl FnMut(usize) -> u64,
+) {
+    const _: () = assert!(LANES == 64, "one u64 mask per mini-batch");
+    if store.len() < batches * batch_rows {
+        return;
+    }
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
+    if wide_vectors() {
+        #[allow(unsafe_code)]
+        // SAFETY: as in `combine_rows`.
+        unsafe {
+            avx512::compact_lanes(store, batch_rows, batches, kept)
+        };
+        return;
+    }
+    compact_lanes_portable(store, batch_rows, batches, kept);
+}
+
+/// [`compact_lanes`] one value at a time. In each row, kept lane `j` comes from a place at
+/// or after its own in the sequence of that row's lanes over the batches, so reading in
+/// order never meets a value already overwritten.
+fn compact_lanes_portable(
+    store: &mut [Row],
+    batch_rows: usize,
+    batches: usize,
+    mut kept: impl FnMut(usize) -> u64,
+) {
+    let mut first = 0usize;
+    for b in 0..batches {
+        let mask = kept(b);
+        for r in 0..batch_rows {
+            let (mut m, mut j) = (mask, first);
+            while m != 0 {
+                let l = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let v = store[b * batch_rows + r][l];
+                store[j / LANES * batch_rows + r][j % LANES] = v;
+                j += 1;
+            }
+        }
+        first += mask.count_ones() as usize;
+    }
+}
+
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
 mod detect {
     use core::sync::atomic::{AtomicBool, AtomicU8, Ordering::Relaxed};
@@ -388,9 +442,9 @@ mod avx512 {
     use core::arch::x86_64::{
         __m256, __m512, __mmask16, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
         _mm256_setzero_ps, _mm256_storeu_ps, _mm512_castpd_ps, _mm512_castps_pd, _mm512_fmadd_ps,
-        _mm512_loadu_ps, _mm512_mask_storeu_ps, _mm512_set1_ps, _mm512_setzero_ps,
-        _mm512_shuffle_f32x4, _mm512_storeu_ps, _mm512_unpackhi_pd, _mm512_unpackhi_ps,
-        _mm512_unpacklo_pd, _mm512_unpacklo_ps,
+        _mm512_loadu_ps, _mm512_mask_storeu_ps, _mm512_maskz_compress_ps, _mm512_set1_ps,
+        _mm512_setzero_ps, _mm512_shuffle_f32x4, _mm512_storeu_ps, _mm512_unpackhi_pd,
+        _mm512_unpackhi_ps, _mm512_unpacklo_pd, _mm512_unpacklo_ps,
     };
 
     /// Registers per lane-row.
@@ -531,6 +585,56 @@ mod avx512 {
         for (o, a) in out.iter_mut().zip(acc) {
             store_row(o, a);
         }
+    }
+
+    /// [`super::compact_lanes`] batch by batch, sixteen lanes per compress: a batch's row is
+    /// loaded whole before its kept lanes are written to the same or earlier places of that
+    /// row's sequence (the end of one batch's row continues at the start of the next batch's).
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn compact_lanes(
+        store: &mut [Row],
+        batch_rows: usize,
+        batches: usize,
+        mut kept: impl FnMut(usize) -> u64,
+    ) {
+        let mut first = 0usize;
+        for b in 0..batches {
+            let mask = kept(b);
+            for r in 0..batch_rows {
+                let v = load_row(&store[b * batch_rows + r]);
+                let mut j = first;
+                for (i, vi) in v.into_iter().enumerate() {
+                    let m = (mask >> (16 * i)) as __mmask16;
+                    let count = m.count_ones() as usize;
+                    let packed = _mm512_maskz_compress_ps(m, vi);
+                    let (batch, lane) = (j / LANES, j % LANES);
+                    let here = count.min(LANES - lane);
+                    let row = &mut store[batch * batch_rows + r];
+                    // SAFETY: the mask writes lanes `lane .. lane + here <= LANES` of the row.
+                    unsafe {
+                        _mm512_mask_storeu_ps(row.as_mut_ptr().add(lane), low_lanes(here), packed)
+                    };
+                    if count > here {
+                        // The rest starts the next batch's row (it exists: j + count lanes
+                        // never pass the end of batch b).
+                        let rest = _mm512_maskz_compress_ps(!low_lanes(here), packed);
+                        let row = &mut store[(batch + 1) * batch_rows + r];
+                        // SAFETY: the mask writes lanes `0 .. count - here < 16` of the row.
+                        unsafe {
+                            _mm512_mask_storeu_ps(row.as_mut_ptr(), low_lanes(count - here), rest)
+                        };
+                    }
+                    j += count;
+                }
+            }
+            first += mask.count_ones() as usize;
+        }
+    }
+
+    /// The mask of the lowest `n <= 16` lanes.
+    #[inline]
+    fn low_lanes(n: usize) -> __mmask16 {
+        ((1u32 << n) - 1) as __mmask16
     }
 
     /// [`super::few_outputs_products`].
@@ -935,6 +1039,65 @@ pub(crate) mod tests {
             outer_products_narrow(&inputs[..used], &dyt, stride, outputs, &mut narrow);
             assert!(same_bits(&wide, &narrow), "{outputs} {used}");
         }
+    }
+
+    #[test]
+    fn compacting_lanes_moves_the_kept_ones_to_the_front_in_order() {
+        const BATCH_ROWS: usize = 3;
+        let mut rng = Rng::new(23);
+        for batches in [1usize, 2, 3, 5] {
+            for _ in 0..40 {
+                let kept: [u64; 5] = core::array::from_fn(|_| match rng.next_u64() % 5 {
+                    0 => 0,
+                    1 => u64::MAX,
+                    // A prefix, as a ray's kept samples are; a suffix.
+                    2 => (1u64 << (rng.next_u64() % 64)) - 1,
+                    3 => !((1u64 << (rng.next_u64() % 64)) - 1),
+                    _ => rng.next_u64(),
+                });
+                let kept = &kept[..batches];
+                let original: [Row; 5 * BATCH_ROWS] = awkward_rows(&mut rng);
+                let mut expected = original;
+                for r in 0..BATCH_ROWS {
+                    let mut j = 0;
+                    for (b, mask) in kept.iter().enumerate() {
+                        for l in (0..LANES).filter(|l| mask >> l & 1 == 1) {
+                            expected[j / LANES * BATCH_ROWS + r][j % LANES] =
+                                original[b * BATCH_ROWS + r][l];
+                            j += 1;
+                        }
+                    }
+                }
+                for wide in [false, true] {
+                    let mut store = original;
+                    match wide {
+                        false => {
+                            compact_lanes_portable(&mut store, BATCH_ROWS, batches, |b| kept[b])
+                        }
+                        #[cfg(all(
+                            target_arch = "x86_64",
+                            target_feature = "fma",
+                            target_feature = "avx"
+                        ))]
+                        #[allow(unsafe_code)]
+                        // SAFETY: `wide_vectors` said the CPU runs AVX-512F.
+                        true if wide_vectors() => unsafe {
+                            avx512::compact_lanes(&mut store, BATCH_ROWS, batches, |b| kept[b])
+                        },
+                        true => continue,
+                    }
+                    assert!(
+                        same_bits(store.as_flattened(), expected.as_flattened()),
+                        "{batches} {kept:x?} wide {wide}"
+                    );
+                }
+            }
+        }
+        // A store shorter than the masks say is left alone.
+        let original: [Row; 2] = awkward_rows(&mut rng);
+        let mut store = original;
+        compact_lanes(&mut store, 1, 3, |_| 1 << 5);
+        assert!(same_bits(store.as_flattened(), original.as_flattened()));
     }
 
     #[test]

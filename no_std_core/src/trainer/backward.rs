@@ -48,7 +48,7 @@ impl Chunk<'_> {
                 );
             }
             laps.lap(Stage::Compositing, &mut self.times);
-            self.backward(shared, first, marched, n, &mut laps);
+            self.backward(shared, n, &mut laps);
             self.report.rays += rays as u32;
             self.report.samples += n as u32;
             self.report.marched += marched as u32;
@@ -100,19 +100,12 @@ impl Chunk<'_> {
         }
     }
 
-    /// Push the compositing gradients of a pass (rays from `first`, `marched` samples, `n`
-    /// of them kept) back through its stored activations: the colour MLP over the kept
-    /// samples' mini-batches, then the density MLP, the planes and the poses over all the
-    /// samples' (the ones cut off carry zero gradients and touch no texel).
+    /// Push the compositing gradients of a pass (rays from `first`, `n` samples kept) back
+    /// through its stored activations, one mini-batch of kept samples at a time: the colour
+    /// MLP, then the density MLP (its rows compacted to the kept samples by the forward
+    /// pass, so that the samples cut off cost nothing), the planes and the poses.
     /// `laps` charges each mini-batch's parts to their stages.
-    fn backward(
-        &mut self,
-        shared: &Shared<'_>,
-        first: usize,
-        marched: usize,
-        n: usize,
-        laps: &mut Laps,
-    ) {
+    fn backward(&mut self, shared: &Shared<'_>, n: usize, laps: &mut Laps) {
         let c = shared.config;
         let layout = shared.layout;
         let (sh_len, geo_len, dim) = (
@@ -129,6 +122,20 @@ impl Chunk<'_> {
         let values_len = 3 * features;
         let extent = shared.aabb.max - shared.aabb.min;
         let weights = row_scale_weights(shared);
+        // A view fit without pose correction wants only the embedding's gradient.
+        let density = !shared.fitting_view || pose;
+        // A view fit only wants the spatial gradient: the frozen planes get none.
+        let mut sink = if shared.fitting_view {
+            PlaneGrads {
+                grads: &mut [],
+                touched: &mut [],
+            }
+        } else {
+            PlaneGrads {
+                grads: self.plane_grads,
+                touched: self.touched,
+            }
+        };
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
             let b = base / LANES;
@@ -136,7 +143,7 @@ impl Chunk<'_> {
                 c,
                 &mut self.colour_store[b * colour_rows..(b + 1) * colour_rows],
             );
-            let grad = split_rows(c, self.gradients).1;
+            let (density_grad, grad) = split_rows(c, self.gradients);
             let kept = &self.kept_index[base..base + lanes];
             // Output gradients; unused lanes stay zero and so contribute nothing.
             for row in grad.rgb.iter_mut() {
@@ -189,11 +196,6 @@ impl Chunk<'_> {
                 db1,
                 self.lane_major,
             );
-            for (l, &s) in kept.iter().enumerate() {
-                for (gi, row) in grad.geo.iter().enumerate() {
-                    self.d_geo[s as usize * geo_len + gi] = row[l];
-                }
-            }
             let rays = lane_rays(kept, self.sample_ray);
             let mut sum = [0.0f32; MAX_COLOUR_HIDDEN];
             let sum = &mut sum[..hidden];
@@ -255,52 +257,27 @@ impl Chunk<'_> {
                 }
             }
             laps.lap(Stage::ColourBackward, &mut self.times);
-        }
-        if shared.fitting_view && !pose {
-            return;
-        }
-
-        // A view fit only wants the spatial gradient: the frozen planes get none.
-        let mut sink = if shared.fitting_view {
-            PlaneGrads {
-                grads: &mut [],
-                touched: &mut [],
-            }
-        } else {
-            PlaneGrads {
-                grads: self.plane_grads,
-                touched: self.touched,
-            }
-        };
-        for base in (0..marched).step_by(LANES) {
-            let lanes = LANES.min(marched - base);
-            // Which lanes were kept: a ray's kept samples are a prefix of its own. The
-            // density MLP runs on every lane (cheaper than gathering the kept ones; the others
-            // carry zero gradients), the planes only on the kept ones.
-            let mut kept = [false; LANES];
-            for (l, k) in kept.iter_mut().enumerate().take(lanes) {
-                let s = base + l;
-                *k = s < self.kept_end[self.sample_ray[s] as usize - first] as usize;
-            }
-            if !kept.contains(&true) {
+            if !density {
                 continue;
             }
-            let b = base / LANES;
+
+            let geo_grads: &[Row] = grad.geo;
+            let grad = density_grad;
             let act = density_rows_of(
                 c,
                 &mut self.density_store[b * density_rows..(b + 1) * density_rows],
             );
-            let grad = split_rows(c, self.gradients).0;
+            // Output gradients: the density's and the geometry features' (the colour MLP's
+            // input gradients); unused lanes stay zero and so contribute nothing.
             for row in grad.out.iter_mut() {
                 row.fill(0.0);
             }
-            for l in (0..lanes).filter(|&l| kept[l]) {
-                let s = base + l;
+            for (l, &s) in kept.iter().enumerate() {
                 // d sigma / d raw = trunc_exp'(raw), which is sigma itself (clamped alike).
-                grad.out[0][l] = self.d_sigma[s] * self.sigma[s];
-                for gi in 0..geo_len {
-                    grad.out[1 + gi][l] = self.d_geo[s * geo_len + gi];
-                }
+                grad.out[0][l] = self.d_sigma[s as usize] * self.sigma[s as usize];
+            }
+            for (out, geo) in grad.out[1..].iter_mut().zip(geo_grads) {
+                out[..lanes].copy_from_slice(&geo[..lanes]);
             }
             let g = &mut *self.mlp_grads;
             backward_layer(
@@ -327,8 +304,8 @@ impl Chunk<'_> {
             // Each lane's feature gradients side by side (the lookup's backward takes them).
             fused::to_lane_major(grad.feats, features, self.lane_major);
             let mut d_feat = [0.0f32; 4 * 64];
-            for l in (0..lanes).filter(|&l| kept[l]) {
-                let s = base + l;
+            for (l, &s) in kept.iter().enumerate() {
+                let s = s as usize;
                 let lane = &self.lane_major[l * features..(l + 1) * features];
                 for ((d, g), w) in d_feat.iter_mut().zip(lane).zip(&weights) {
                     *d = g * w;

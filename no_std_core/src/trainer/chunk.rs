@@ -59,8 +59,6 @@ pub(super) struct Chunk<'a> {
     pub(super) rgb: &'a mut [[f32; 3]],
     pub(super) d_sigma: &'a mut [f32],
     pub(super) d_rgb: &'a mut [[f32; 3]],
-    /// d loss / d geometry features of each kept sample (the only ones read).
-    pub(super) d_geo: &'a mut [f32],
     pub(super) sample_ray: &'a mut [u32],
     /// Index of each kept sample (the colour MLP's mini-batches run over these).
     pub(super) kept_index: &'a mut [u32],
@@ -154,8 +152,9 @@ impl Chunk<'_> {
         end - first
     }
 
-    /// Density (and geometry features) of samples `0..n`. With `store`, every mini-batch's
-    /// activations and plane values stay in the stores for the backward pass.
+    /// Density of samples `0..n`. With `store`, every mini-batch's activations and plane
+    /// values stay in the stores (for the colour pass and the backward pass); without, the
+    /// geometry features go to `geo` for the colour pass.
     pub(super) fn density_pass(&mut self, shared: &Shared<'_>, n: usize, store: bool) {
         let c = shared.config;
         let geo_len = c.geo_features as usize;
@@ -181,11 +180,34 @@ impl Chunk<'_> {
             );
             for l in 0..lanes {
                 self.sigma[base + l] = field::trunc_exp(act.out[0][l]);
-                for g in 0..geo_len {
-                    self.geo[(base + l) * geo_len + g] = act.out[1 + g][l];
+            }
+            if !store {
+                for l in 0..lanes {
+                    for g in 0..geo_len {
+                        self.geo[(base + l) * geo_len + g] = act.out[1 + g][l];
+                    }
                 }
             }
         }
+    }
+
+    /// Moves the stored density rows of the kept samples (`n` of the `marched`) to the front,
+    /// so that mini-batch `b` of them holds kept samples `64 b ..` like the colour rows: the
+    /// colour pass reads its geometry features there, and the backward pass spends nothing on
+    /// the samples cut off.
+    pub(super) fn compact_density_rows(&mut self, shared: &Shared<'_>, marched: usize, n: usize) {
+        let rows = density_activation_rows(shared.config);
+        let kept = &self.kept_index[..n];
+        let mut next = 0;
+        fused::compact_lanes(self.density_store, rows, marched.div_ceil(LANES), |b| {
+            // `kept_index` is in marching order: batch b's kept samples come next.
+            let mut mask = 0u64;
+            while let Some(&s) = kept.get(next).filter(|&&s| (s as usize) < (b + 1) * LANES) {
+                mask |= 1 << (s as usize - b * LANES);
+                next += 1;
+            }
+            mask
+        });
     }
 
     /// Cut each of the pass's `rays` after the sample where its transmittance runs out:
@@ -211,35 +233,50 @@ impl Chunk<'_> {
     }
 
     /// Colours of the kept samples (`n` of them). With `store`, every mini-batch's colour
-    /// rows stay in the store for the backward pass.
+    /// rows stay in the store for the backward pass, and the geometry features come from
+    /// the compacted density rows ([`Self::compact_density_rows`]).
     pub(super) fn colour_pass(&mut self, shared: &Shared<'_>, n: usize, store: bool) {
         let c = shared.config;
-        let rows = colour_activation_rows(c);
+        let (rows, density_rows) = (colour_activation_rows(c), density_activation_rows(c));
+        let geo_len = c.geo_features as usize;
         for base in (0..n).step_by(LANES) {
             let lanes = LANES.min(n - base);
-            let mut act = if store {
-                let b = base / LANES;
-                colour_rows_of(c, &mut self.colour_store[b * rows..(b + 1) * rows])
-            } else {
-                split_rows(c, self.activations).1
-            };
+            let b = base / LANES;
             let kept = &self.kept_index[base..base + lanes];
-            Self::colour_forward(kept, self.sample_ray, self.geo, shared, &mut act);
+            let mut act = if store {
+                let act = colour_rows_of(c, &mut self.colour_store[b * rows..(b + 1) * rows]);
+                let stored = &self.density_store[b * density_rows..(b + 1) * density_rows];
+                let geo = &stored[density_rows - geo_len..];
+                for (row, from) in act.geo.iter_mut().zip(geo) {
+                    row[..lanes].copy_from_slice(&from[..lanes]);
+                    row[lanes..].fill(0.0);
+                }
+                act
+            } else {
+                let act = split_rows(c, self.activations).1;
+                for (g, row) in act.geo.iter_mut().enumerate() {
+                    row.fill(0.0);
+                    for (v, &s) in row.iter_mut().zip(kept) {
+                        *v = self.geo[s as usize * geo_len + g];
+                    }
+                }
+                act
+            };
+            Self::colour_forward(kept, self.sample_ray, shared, &mut act);
             for (l, &s) in kept.iter().enumerate() {
                 self.rgb[s as usize] = [act.rgb[0][l], act.rgb[1][l], act.rgb[2][l]];
             }
         }
     }
 
-    /// The colour MLP on the samples `kept` (at most `LANES`) into `rows.rgb`. The view
-    /// encoding and the appearance embedding are the same for every sample of a ray, so
-    /// their part of the first layer ([`ray_term`]) is computed once per run of a ray's
-    /// samples; only the geometry features (stored by the density pass) go through that
-    /// layer per sample.
+    /// The colour MLP on the samples `kept` (at most `LANES`; their geometry features in
+    /// `rows.geo`, zero in the unused lanes) into `rows.rgb`. The view encoding and the
+    /// appearance embedding are the same for every sample of a ray, so their part of the
+    /// first layer ([`ray_term`]) is computed once per run of a ray's samples; only the
+    /// geometry features go through that layer per sample.
     pub(super) fn colour_forward(
         kept: &[u32],
         sample_ray: &[u32],
-        geo: &[f32],
         shared: &Shared<'_>,
         rows: &mut ColourRows<'_>,
     ) {
@@ -248,12 +285,6 @@ impl Chunk<'_> {
         let first = shared.layout.layers[COLOUR_HIDDEN1];
         let hidden = first.outputs;
         let lanes = kept.len();
-        for (g, row) in rows.geo.iter_mut().enumerate() {
-            row.fill(0.0);
-            for (v, &s) in row.iter_mut().zip(kept) {
-                *v = geo[s as usize * geo_len + g];
-            }
-        }
         let rays = lane_rays(kept, sample_ray);
         let mut term = [0.0f32; MAX_COLOUR_HIDDEN];
         let term = &mut term[..hidden];
@@ -296,6 +327,9 @@ impl Chunk<'_> {
         self.density_pass(shared, marched, store);
         laps.lap(Stage::DensityForward, &mut self.times);
         let n = self.keep_visible(shared, rays);
+        if store {
+            self.compact_density_rows(shared, marched, n);
+        }
         laps.lap(Stage::EarlyStop, &mut self.times);
         self.colour_pass(shared, n, store);
         laps.lap(Stage::ColourForward, &mut self.times);

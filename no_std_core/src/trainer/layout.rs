@@ -113,7 +113,6 @@ impl<'a> Trainer<'a> {
             let (rgb, block) = block.split_at_mut(3 * samples);
             let (d_sigma, block) = block.split_at_mut(t(samples));
             let (d_rgb, block) = block.split_at_mut(t(3 * samples));
-            let (d_geo, block) = block.split_at_mut(t(geo_len * samples));
             let (plane_values, block) = block.split_at_mut(t(3 * inputs * samples));
             let (density_store, colour_store) = block.split_at_mut(t(density_rows * samples));
             let sample_ray = carver.take::<u32>(samples)?;
@@ -135,7 +134,6 @@ impl<'a> Trainer<'a> {
                 rgb: bytemuck::cast_slice_mut(rgb),
                 d_sigma,
                 d_rgb: bytemuck::cast_slice_mut(d_rgb),
-                d_geo,
                 sample_ray,
                 kept_index,
                 ray_start,

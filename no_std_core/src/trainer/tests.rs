@@ -301,6 +301,58 @@ fn check_frame_gradients(config: Config, step: u32) {
     }
 }
 
+/// The backward pass compacts the density rows to the samples the early stop keeps: the
+/// gradients of rays cut off after `k` samples equal, bit for bit, those of the same rays
+/// marched to `k` samples only. The density is made uniform (no weight into the density
+/// output, its bias set) so that every ray is cut at the same sample; the geometry features
+/// still vary, so every layer, the planes and the pose corrections get gradients.
+#[test]
+fn samples_cut_off_leave_the_gradients_of_rays_that_end_there() {
+    const RAYS: u32 = 16;
+    fn gradients(max_samples: u16, arena: &mut [u8]) -> (u32, u32, u64) {
+        let mut config = small_config();
+        config.max_samples_per_ray = max_samples;
+        config.rays_per_batch = RAYS;
+        // One pass per chunk either way, so the mini-batches hold the same samples.
+        config.samples_per_chunk = 256;
+        let plan = MemoryPlan::new(&config);
+        let Some(arena) = arena.get_mut(..plan.total) else {
+            panic!("test arena too small: {}", plan.total)
+        };
+        let mut trainer = Trainer::new(config, arena).unwrap();
+        put_test_frame(&mut trainer);
+        trainer.frame_params[..10]
+            .copy_from_slice(&[0.3, -0.2, 0.1, 0.25, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03]);
+        let out = trainer.layout.layers[DENSITY_OUT];
+        for w in trainer.mlp[out.weights..out.biases]
+            .iter_mut()
+            .step_by(out.outputs)
+        {
+            *w = 0.0;
+        }
+        trainer.mlp[out.biases] = 25.0f32.ln();
+        trainer.forward_backward(&Sequential).unwrap();
+        let (mut kept, mut marched, mut hash) = (0, 0, 0xcbf2_9ce4_8422_2325u64);
+        for chunk in trainer.chunks.iter() {
+            kept += chunk.report.samples;
+            marched += chunk.report.marched;
+            let grads = [&*chunk.mlp_grads, &*chunk.plane_grads, &*chunk.frame_grads];
+            for v in grads.into_iter().flatten() {
+                hash = (hash ^ v.to_bits() as u64).wrapping_mul(0x100_0000_01b3);
+            }
+        }
+        (kept, marched, hash)
+    }
+    let mut arena = [0u8; 1 << 20];
+    let (kept, marched, cut) = gradients(24, &mut arena);
+    assert!(kept < marched, "the density cuts the rays short");
+    assert_eq!(kept % RAYS, 0, "every ray is cut at the same sample");
+    let k = (kept / RAYS) as u16;
+    let (kept_short, marched_short, ended) = gradients(k, &mut arena);
+    assert_eq!((kept_short, marched_short), (kept, kept));
+    assert_eq!(cut, ended, "cut after {k} of 24 samples");
+}
+
 #[test]
 fn plane_tv_smooths_the_planes_and_only_the_texels_a_step_touches() {
     let mut rough = [0.0f64; 2];
