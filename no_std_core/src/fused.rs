@@ -354,6 +354,10 @@ fn compact_lanes_portable(
     let mut first = 0usize;
     for b in 0..batches {
         let mask = kept(b);
+        if first == b * LANES && already_in_place(mask) {
+            first += mask.count_ones() as usize;
+            continue;
+        }
         for r in 0..batch_rows {
             let (mut m, mut j) = (mask, first);
             while m != 0 {
@@ -366,6 +370,13 @@ fn compact_lanes_portable(
         }
         first += mask.count_ones() as usize;
     }
+}
+
+/// Whether a batch that starts at its own place in the compacted order (no lane cut before
+/// it) keeps a prefix of its lanes, which then stay where they are: the common case of a
+/// pass in which no ray is cut, or none before this batch.
+fn already_in_place(mask: u64) -> bool {
+    mask & mask.wrapping_add(1) == 0
 }
 
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
@@ -600,6 +611,10 @@ mod avx512 {
         let mut first = 0usize;
         for b in 0..batches {
             let mask = kept(b);
+            if first == b * LANES && super::already_in_place(mask) {
+                first += mask.count_ones() as usize;
+                continue;
+            }
             for r in 0..batch_rows {
                 let v = load_row(&store[b * batch_rows + r]);
                 let mut j = first;
