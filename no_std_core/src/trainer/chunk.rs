@@ -177,6 +177,7 @@ impl Chunk<'_> {
                 &self.positions[base..base + lanes],
                 &mut act,
                 values,
+                Outputs::All,
             );
             for l in 0..lanes {
                 self.sigma[base + l] = field::trunc_exp(act.out[0][l]);
@@ -371,7 +372,7 @@ impl Chunk<'_> {
     ) {
         for (points, sigma) in points.chunks(LANES).zip(sigma.chunks_mut(LANES)) {
             let (mut rows, _) = split_rows(shared.config, self.activations);
-            density_forward(shared, points, &mut rows, &mut []);
+            density_forward(shared, points, &mut rows, &mut [], Outputs::DensityOnly);
             for (l, s) in sigma.iter_mut().enumerate() {
                 *s = field::trunc_exp(rows.out[0][l]);
             }
@@ -413,7 +414,13 @@ impl Chunk<'_> {
                 *p = (shared.aabb.min + (cell + jitter) * size).to_array();
             }
             let (mut rows, _) = split_rows(c, self.activations);
-            density_forward(shared, &positions[..lanes], &mut rows, &mut []);
+            density_forward(
+                shared,
+                &positions[..lanes],
+                &mut rows,
+                &mut [],
+                Outputs::DensityOnly,
+            );
             for l in 0..lanes {
                 let d = &mut cells[base + l];
                 let sigma = field::trunc_exp(rows.out[0][l]);
@@ -487,16 +494,31 @@ pub(super) fn embedding_of<'s>(shared: &Shared<'s>, r: usize) -> &'s [f32] {
     }
 }
 
+/// What [`density_forward`] computes of the density MLP's outputs.
+#[derive(Clone, Copy, PartialEq)]
+pub(super) enum Outputs {
+    /// The density and the geometry features.
+    All,
+    /// The density alone (`rows.out[0]`; the other rows keep what they held): the occupancy
+    /// refresh and point queries, which read nothing else.
+    DensityOnly,
+}
+
 /// The density MLP on up to `LANES` positions: their plane features into `rows.feats`, then
-/// the hidden layer and `rows.out`.
+/// the hidden layer and `rows.out` (all of it, or the density row alone).
 pub(super) fn density_forward(
     shared: &Shared<'_>,
     positions: &[[f32; 3]],
     rows: &mut DensityRows<'_>,
     values: &mut [f32],
+    outputs: Outputs,
 ) {
     load_features(shared, positions, rows.feats, values);
-    density_mlp(shared, rows.feats, rows.hidden, rows.out);
+    let out = match outputs {
+        Outputs::All => &mut rows.out[..],
+        Outputs::DensityOnly => &mut rows.out[..1],
+    };
+    density_mlp(shared, rows.feats, rows.hidden, out);
 }
 
 /// Plane features of up to `LANES` positions into `feats` (unused lanes zero), and each
@@ -538,6 +560,8 @@ pub(super) fn row_scale_weights(shared: &Shared<'_>) -> [f32; 4 * 64] {
     })
 }
 
+/// The density MLP from the plane features: the hidden layer, then the first `out.len()`
+/// output rows.
 fn density_mlp(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut [Row]) {
     let (l1, l2) = (
         shared.layout.layers[DENSITY_HIDDEN],
@@ -551,12 +575,12 @@ fn density_mlp(shared: &Shared<'_>, feats: &[Row], hidden: &mut [Row], out: &mut
         hidden,
     );
     field::relu_forward(hidden);
-    field::layer_forward(
-        &p[l2.weights..l2.biases],
-        &p[l2.biases..l2.biases + l2.outputs],
-        hidden,
-        out,
-    );
+    // Each output row sums its own terms, so computing the first rows alone gives their bits.
+    let w2 = &p[l2.weights..l2.biases];
+    for (row, b) in out.iter_mut().zip(&p[l2.biases..l2.biases + l2.outputs]) {
+        *row = [*b; LANES];
+    }
+    fused::combine_rows(out, hidden, |n, k| w2[k * l2.outputs + n]);
 }
 
 /// The colour MLP from its first layer's output `h1` (before the ReLU) to `rgb`.
