@@ -23,7 +23,8 @@ pub enum Stage {
     Marching,
     /// Plane lookups and the density MLP on every marched sample (chunks).
     DensityForward,
-    /// Cutting each ray where its transmittance runs out, listing the kept samples (chunks).
+    /// Cutting each ray where its transmittance runs out, listing the kept samples and (in
+    /// training) compacting their density rows (chunks).
     EarlyStop,
     /// The colour MLP on the kept samples (chunks).
     ColourForward,

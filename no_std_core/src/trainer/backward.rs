@@ -100,10 +100,10 @@ impl Chunk<'_> {
         }
     }
 
-    /// Push the compositing gradients of a pass (rays from `first`, `n` samples kept) back
-    /// through its stored activations, one mini-batch of kept samples at a time: the colour
-    /// MLP, then the density MLP (its rows compacted to the kept samples by the forward
-    /// pass, so that the samples cut off cost nothing), the planes and the poses.
+    /// Push the compositing gradients of a pass (`n` samples kept) back through its stored
+    /// activations, one mini-batch of kept samples at a time: the colour MLP, then the
+    /// density MLP (its rows compacted to the kept samples by the forward pass, so that the
+    /// samples cut off cost nothing), the planes and the poses.
     /// `laps` charges each mini-batch's parts to their stages.
     fn backward(&mut self, shared: &Shared<'_>, n: usize, laps: &mut Laps) {
         let c = shared.config;
