@@ -332,51 +332,58 @@ pub fn compact_lanes(
     }
     #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
     if wide_vectors() {
-        #[allow(unsafe_code)]
-        // SAFETY: as in `combine_rows`.
-        unsafe {
-            avx512::compact_lanes(store, batch_rows, batches, kept)
+        let wide = |store: &mut [Row], batch: usize, mask: u64, first: usize| {
+            #[allow(unsafe_code)]
+            // SAFETY: as in `combine_rows`.
+            unsafe {
+                avx512::move_kept(store, batch_rows, batch, mask, first)
+            }
         };
+        compact_lanes_with(store, batches, kept, wide);
         return;
     }
-    compact_lanes_portable(store, batch_rows, batches, kept);
+    let portable = |store: &mut [Row], batch: usize, mask: u64, first: usize| {
+        move_kept_portable(store, batch_rows, batch, mask, first)
+    };
+    compact_lanes_with(store, batches, kept, portable);
 }
 
-/// [`compact_lanes`] one value at a time. In each row, kept lane `j` comes from a place at
-/// or after its own in the sequence of that row's lanes over the batches, so reading in
-/// order never meets a value already overwritten.
-fn compact_lanes_portable(
+/// [`compact_lanes`]'s walk over the batches, `move_kept(store, b, mask, first)` moving
+/// batch `b`'s kept lanes to places `first ..` of the compacted order. In each row, kept lane
+/// `j` comes from a place at or after its own in the sequence of that row's lanes over the
+/// batches, so moving the batches in order never reads a value already overwritten.
+fn compact_lanes_with(
     store: &mut [Row],
-    batch_rows: usize,
     batches: usize,
     mut kept: impl FnMut(usize) -> u64,
+    mut move_kept: impl FnMut(&mut [Row], usize, u64, usize),
 ) {
     let mut first = 0usize;
     for b in 0..batches {
         let mask = kept(b);
-        if first == b * LANES && already_in_place(mask) {
-            first += mask.count_ones() as usize;
-            continue;
-        }
-        for r in 0..batch_rows {
-            let (mut m, mut j) = (mask, first);
-            while m != 0 {
-                let l = m.trailing_zeros() as usize;
-                m &= m - 1;
-                let v = store[b * batch_rows + r][l];
-                store[j / LANES * batch_rows + r][j % LANES] = v;
-                j += 1;
-            }
+        // A batch with no lane cut before it that keeps a prefix of its own lanes is in
+        // place already: the common case of a pass in which no ray is cut, or none yet.
+        let in_place = first == b * LANES && mask & mask.wrapping_add(1) == 0;
+        if !in_place {
+            move_kept(store, b, mask, first);
         }
         first += mask.count_ones() as usize;
     }
 }
 
-/// Whether a batch that starts at its own place in the compacted order (no lane cut before
-/// it) keeps a prefix of its lanes, which then stay where they are: the common case of a
-/// pass in which no ray is cut, or none before this batch.
-fn already_in_place(mask: u64) -> bool {
-    mask & mask.wrapping_add(1) == 0
+/// Batch `b`'s kept lanes (`mask`) to places `first ..` of the compacted order, one value at
+/// a time.
+fn move_kept_portable(store: &mut [Row], batch_rows: usize, b: usize, mask: u64, first: usize) {
+    for r in 0..batch_rows {
+        let (mut m, mut j) = (mask, first);
+        while m != 0 {
+            let l = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let v = store[b * batch_rows + r][l];
+            store[j / LANES * batch_rows + r][j % LANES] = v;
+            j += 1;
+        }
+    }
 }
 
 #[cfg(all(target_arch = "x86_64", target_feature = "fma", target_feature = "avx"))]
@@ -598,51 +605,43 @@ mod avx512 {
         }
     }
 
-    /// [`super::compact_lanes`] batch by batch, sixteen lanes per compress: a batch's row is
+    /// [`super::move_kept_portable`] sixteen lanes per compress: each row of the batch is
     /// loaded whole before its kept lanes are written to the same or earlier places of that
     /// row's sequence (the end of one batch's row continues at the start of the next batch's).
     #[target_feature(enable = "avx512f")]
-    pub(super) fn compact_lanes(
+    pub(super) fn move_kept(
         store: &mut [Row],
         batch_rows: usize,
-        batches: usize,
-        mut kept: impl FnMut(usize) -> u64,
+        b: usize,
+        mask: u64,
+        first: usize,
     ) {
-        let mut first = 0usize;
-        for b in 0..batches {
-            let mask = kept(b);
-            if first == b * LANES && super::already_in_place(mask) {
-                first += mask.count_ones() as usize;
-                continue;
-            }
-            for r in 0..batch_rows {
-                let v = load_row(&store[b * batch_rows + r]);
-                let mut j = first;
-                for (i, vi) in v.into_iter().enumerate() {
-                    let m = (mask >> (16 * i)) as __mmask16;
-                    let count = m.count_ones() as usize;
-                    let packed = _mm512_maskz_compress_ps(m, vi);
-                    let (batch, lane) = (j / LANES, j % LANES);
-                    let here = count.min(LANES - lane);
-                    let row = &mut store[batch * batch_rows + r];
-                    // SAFETY: the mask writes lanes `lane .. lane + here <= LANES` of the row.
+        for r in 0..batch_rows {
+            let v = load_row(&store[b * batch_rows + r]);
+            let mut j = first;
+            for (i, vi) in v.into_iter().enumerate() {
+                let m = (mask >> (16 * i)) as __mmask16;
+                let count = m.count_ones() as usize;
+                let packed = _mm512_maskz_compress_ps(m, vi);
+                let (batch, lane) = (j / LANES, j % LANES);
+                let here = count.min(LANES - lane);
+                let row = &mut store[batch * batch_rows + r];
+                // SAFETY: the mask writes lanes `lane .. lane + here <= LANES` of the row.
+                unsafe {
+                    _mm512_mask_storeu_ps(row.as_mut_ptr().add(lane), low_lanes(here), packed)
+                };
+                if count > here {
+                    // The rest starts the next batch's row (it exists: j + count lanes never
+                    // pass the end of batch b).
+                    let rest = _mm512_maskz_compress_ps(!low_lanes(here), packed);
+                    let row = &mut store[(batch + 1) * batch_rows + r];
+                    // SAFETY: the mask writes lanes `0 .. count - here < 16` of the row.
                     unsafe {
-                        _mm512_mask_storeu_ps(row.as_mut_ptr().add(lane), low_lanes(here), packed)
+                        _mm512_mask_storeu_ps(row.as_mut_ptr(), low_lanes(count - here), rest)
                     };
-                    if count > here {
-                        // The rest starts the next batch's row (it exists: j + count lanes
-                        // never pass the end of batch b).
-                        let rest = _mm512_maskz_compress_ps(!low_lanes(here), packed);
-                        let row = &mut store[(batch + 1) * batch_rows + r];
-                        // SAFETY: the mask writes lanes `0 .. count - here < 16` of the row.
-                        unsafe {
-                            _mm512_mask_storeu_ps(row.as_mut_ptr(), low_lanes(count - here), rest)
-                        };
-                    }
-                    j += count;
                 }
+                j += count;
             }
-            first += mask.count_ones() as usize;
         }
     }
 
@@ -1086,19 +1085,27 @@ pub(crate) mod tests {
                 for wide in [false, true] {
                     let mut store = original;
                     match wide {
-                        false => {
-                            compact_lanes_portable(&mut store, BATCH_ROWS, batches, |b| kept[b])
-                        }
+                        false => compact_lanes_with(
+                            &mut store,
+                            batches,
+                            |b| kept[b],
+                            |s, b, mask, first| move_kept_portable(s, BATCH_ROWS, b, mask, first),
+                        ),
                         #[cfg(all(
                             target_arch = "x86_64",
                             target_feature = "fma",
                             target_feature = "avx"
                         ))]
-                        #[allow(unsafe_code)]
-                        // SAFETY: `wide_vectors` said the CPU runs AVX-512F.
-                        true if wide_vectors() => unsafe {
-                            avx512::compact_lanes(&mut store, BATCH_ROWS, batches, |b| kept[b])
-                        },
+                        true if wide_vectors() => compact_lanes_with(
+                            &mut store,
+                            batches,
+                            |b| kept[b],
+                            #[allow(unsafe_code)]
+                            // SAFETY: `wide_vectors` said the CPU runs AVX-512F.
+                            |s, b, mask, first| unsafe {
+                                avx512::move_kept(s, BATCH_ROWS, b, mask, first)
+                            },
+                        ),
                         true => continue,
                     }
                     assert!(
