@@ -187,11 +187,15 @@ impl Chunk<'_> {
             let w1 = &p[l1.weights..l1.biases];
             let (dw1, db1) = g[l1.weights..l1.biases + hidden].split_at_mut(l1.biases - l1.weights);
             let geo_rows = sh_len * hidden..(sh_len + geo_len) * hidden;
+            // d loss / d geometry features goes straight to the density MLP's output
+            // gradients (rows 1 ..; row 0, the density's, is set below), and only when the
+            // density part runs.
+            let (d_density_out, d_geo) = density_grad.out.split_at_mut(1);
             let lane_major = field::layer_backward(
                 &w1[geo_rows.clone()],
                 act.geo,
                 grad.hidden1,
-                Some(grad.geo),
+                density.then_some(d_geo),
                 &mut dw1[geo_rows],
                 db1,
                 self.lane_major,
@@ -261,24 +265,19 @@ impl Chunk<'_> {
                 continue;
             }
 
-            let geo_grads: &[Row] = grad.geo;
-            let grad = density_grad;
             let act = density_rows_of(
                 c,
                 &mut self.density_store[b * density_rows..(b + 1) * density_rows],
             );
-            // Output gradients: the density's and the geometry features' (the colour MLP's
-            // input gradients); unused lanes stay zero and so contribute nothing.
-            for row in grad.out.iter_mut() {
-                row.fill(0.0);
-            }
+            // The density's output gradient (the geometry features' came from the colour
+            // MLP above); unused lanes stay zero and so contribute nothing.
+            let d_density = &mut d_density_out[0];
+            d_density.fill(0.0);
             for (l, &s) in kept.iter().enumerate() {
                 // d sigma / d raw = trunc_exp'(raw), which is sigma itself (clamped alike).
-                grad.out[0][l] = self.d_sigma[s as usize] * self.sigma[s as usize];
+                d_density[l] = self.d_sigma[s as usize] * self.sigma[s as usize];
             }
-            for (out, geo) in grad.out[1..].iter_mut().zip(geo_grads) {
-                out[..lanes].copy_from_slice(&geo[..lanes]);
-            }
+            let grad = density_grad;
             let g = &mut *self.mlp_grads;
             backward_layer(
                 p,
