@@ -798,8 +798,9 @@ fn a_run_whose_every_step_was_skipped_is_refused() {
         samples: 100,
     };
     assert!(train::check_trained(Path::new("run"), &trainer, tally).is_ok());
-    // The state of a run of 5 steps, all skipped: step, updates, skipped, refreshes.
-    let state: Vec<u8> = [5u32, 0, 5, 0]
+    // The state of a run of 5 steps, all skipped: step, updates, skipped, refreshes, pose
+    // updates.
+    let state: Vec<u8> = [5u32, 0, 5, 0, 0]
         .iter()
         .flat_map(|v| v.to_ne_bytes())
         .collect();

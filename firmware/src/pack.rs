@@ -59,6 +59,10 @@ pub const CONFIG: Config = Config {
     pose_correction: false,
     pose_pivot: PosePivot::Camera,
     pose_warmup_steps: 0,
+    pose_prior_rotation_deg: 0.0,
+    pose_prior_position: 0.0,
+    pose_refine_iterations: 0,
+    pose_refine_rays: 512,
     coarse_to_fine_steps: 0,
     seed: 0,
 };

@@ -6,9 +6,12 @@
 use crate::dataset::Dataset;
 use crate::error::{HostError, Result};
 use crate::geometry::{self, Chamfer, Mesh, SurfaceOptions, Triangle};
-use crate::report::{self, ModelFigures, PoseErrors, TrainingFigures, ViewFigures, ViewMetrics};
+use crate::report::{
+    self, FramePose, MeansAt, ModelFigures, PoseErrors, PoseRefinementFigures, PoseUncertainty,
+    TrainingFigures, ViewFigures, ViewMetrics,
+};
 use crate::train::{self, RayonExecutor};
-use orbit_nerf_core::{Config, MemoryPlan, Pose, StepReport, Trainer};
+use orbit_nerf_core::{Config, MemoryPlan, Pose, PoseFit, StepReport, Trainer};
 use std::time::Instant;
 
 /// Which of the method's additions a model uses.
@@ -56,6 +59,20 @@ pub struct VariantResult {
     /// against the exact poses (when the dataset has them).
     pub pose_before: Option<PoseErrors>,
     pub pose_after: Option<PoseErrors>,
+    /// Each training frame's pose refinement (its uncertainty), in training order; empty
+    /// without pose correction.
+    pub pose_fits: Vec<PoseFit>,
+    /// Each training frame's refined pose: uncertainty and, with exact poses, true error.
+    pub pose_frames: Vec<FramePose>,
+    /// Their summary (with pose correction).
+    pub pose_uncertainty: Option<PoseUncertainty>,
+    /// Seconds of the pose refinement (part of `train_seconds`).
+    pub pose_refine_seconds: f64,
+    /// The held-out means with each view at its exact pose (where the data has them), and
+    /// at its label aligned by the pose refinement (test-time alignment); `metrics` is at
+    /// the labels.
+    pub metrics_exact: Option<ViewMetrics>,
+    pub metrics_aligned: ViewMetrics,
     /// Each held-out view's figures, in `test` order.
     pub views: Vec<ViewFigures>,
     pub training: TrainingFigures,
@@ -72,6 +89,14 @@ impl VariantResult {
             mean: self.metrics,
             views: self.views.clone(),
             training: Some(self.training),
+            mean_at: Some(MeansAt {
+                exact_poses: self.metrics_exact,
+                aligned: self.metrics_aligned,
+            }),
+            pose_refinement: self.pose_uncertainty.map(|summary| PoseRefinementFigures {
+                summary,
+                frames: self.pose_frames.clone(),
+            }),
         }
     }
 }
@@ -206,25 +231,34 @@ impl Experiment<'_> {
         let (dataset, train_idx) = (self.dataset, self.train_idx);
         let config = train::fit_config(config, dataset, train_idx.len());
         let executor = RayonExecutor::new(self.threads)?;
+        let names: Vec<String> = train_idx
+            .iter()
+            .map(|&i| dataset.frames[i].name.clone())
+            .collect();
         let plan = MemoryPlan::new(&config);
         let mut arena = vec![0u8; plan.total];
         let mut trainer = Trainer::new(config, &mut arena)
             .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
         train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
-        // The held-out views' scores and their mean.
-        let score = |trainer: &mut Trainer<'_>| -> Result<(Vec<train::ViewScore>, ViewMetrics)> {
-            let scores = train::evaluate(
+        // The held-out views' scores and their mean, at the labels, at the exact poses
+        // (`poses`) or aligned.
+        let score_at = |trainer: &mut Trainer<'_>,
+                        poses: Option<&[Pose]>,
+                        align: bool|
+         -> Result<(Vec<train::ViewScore>, ViewMetrics)> {
+            let scores = train::evaluate_at(
                 trainer,
                 &executor,
                 dataset,
                 self.test_idx,
-                self.fit_steps,
-                false,
+                poses,
+                (self.fit_steps, align),
                 None,
             )?;
             let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
             Ok((scores, report::mean_metrics(&per_view)))
         };
+        let score = |trainer: &mut Trainer<'_>| score_at(trainer, None, false);
         let mut so_far = FiguresSoFar {
             train_seconds: 0.0,
             rays: 0,
@@ -281,6 +315,10 @@ impl Experiment<'_> {
                 }
             }
         }
+        // The poses' refinement with the field frozen is the run's last training stage.
+        let refine_start = Instant::now();
+        let pose_fits = train::refine_poses(&mut trainer, &executor)?;
+        let pose_refine_seconds = refine_start.elapsed().as_secs_f64();
         train_seconds += start.elapsed().as_secs_f64();
         let tally = train::TrainingTally {
             steps: config.steps as u64,
@@ -312,28 +350,36 @@ impl Experiment<'_> {
             &dataset.source,
             crate::memory::limit_or_default(None),
         );
-        let (pose_before, pose_after) = match self.truth {
-            Some(truth) => {
-                let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
-                let exact: Vec<Pose> = train_idx
-                    .iter()
-                    .filter_map(|&i| truth.get(i).copied())
-                    .collect();
-                let corrected: Vec<Pose> = labels
-                    .iter()
-                    .enumerate()
-                    .map(|(slot, label)| {
-                        let correction = trainer.pose_correction(slot).unwrap_or_default();
-                        correction.apply(label, config.pose_pivot_point())
-                    })
-                    .collect();
-                (
-                    Some(report::pose_errors(&labels, &exact)),
-                    Some(report::pose_errors(&corrected, &exact)),
-                )
-            }
+        let metrics_exact = match self.truth {
+            Some(truth) => Some(score_at(&mut trainer, Some(truth), false)?.1),
+            None => None,
+        };
+        let (_, metrics_aligned) = score_at(&mut trainer, None, true)?;
+        let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
+        let corrected: Vec<Pose> = labels
+            .iter()
+            .enumerate()
+            .map(|(slot, label)| {
+                let correction = trainer.pose_correction(slot).unwrap_or_default();
+                correction.apply(label, config.pose_pivot_point())
+            })
+            .collect();
+        let exact: Option<Vec<Pose>> = self.truth.map(|truth| {
+            train_idx
+                .iter()
+                .filter_map(|&i| truth.get(i).copied())
+                .collect()
+        });
+        let (pose_before, pose_after) = match &exact {
+            Some(exact) => (
+                Some(report::pose_errors(&labels, exact)),
+                Some(report::pose_errors(&corrected, exact)),
+            ),
             None => (None, None),
         };
+        let pose_frames = report::frame_poses(&names, &pose_fits, &corrected, exact.as_deref());
+        let pose_uncertainty =
+            (!pose_frames.is_empty()).then(|| report::pose_uncertainty(&pose_frames));
         if let Some(progress) = self.progress {
             // The run's own scratch file: its figures are in the result now.
             match std::fs::remove_file(progress.path) {
@@ -358,6 +404,12 @@ impl Experiment<'_> {
             renders: scores.into_iter().map(|s| s.render).collect(),
             pose_before,
             pose_after,
+            pose_fits,
+            pose_frames,
+            pose_uncertainty,
+            pose_refine_seconds,
+            metrics_exact,
+            metrics_aligned,
             training,
             surface,
         })

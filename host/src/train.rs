@@ -6,7 +6,7 @@ use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
 use crate::report::{ViewFigures, ViewMetrics, score_view};
-use orbit_nerf_core::{Config, Executor, Pose, PoseCorrection, Trainer};
+use orbit_nerf_core::{Config, Executor, Pose, PoseCorrection, PoseFit, Trainer};
 use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
@@ -200,6 +200,28 @@ pub fn load_frames<'f>(
     Ok(())
 }
 
+/// Refine every training frame's pose correction with the field frozen
+/// (`Trainer::refine_pose`, slot by slot): the last stage of a training run with pose
+/// correction. Returns each slot's fit, in slot order (none without pose correction or
+/// refinement iterations).
+pub fn refine_poses<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Result<Vec<PoseFit>> {
+    let config = *trainer.config();
+    if !config.pose_correction {
+        return Ok(Vec::new());
+    }
+    let slots: Vec<usize> = (0..trainer.frames().len())
+        .filter_map(|i| trainer.frames().occupied_slot(i))
+        .collect();
+    slots
+        .into_iter()
+        .map(|slot| {
+            trainer
+                .refine_pose(executor, slot)
+                .map_err(|e| core_error(Path::new("pose refinement"), e))
+        })
+        .collect()
+}
+
 /// Refuse training frames with nothing to learn from: every pixel of every one black (an
 /// exposure of 0, a target that is never lit). `source` names the dataset in the error.
 pub fn check_frames_have_content<'f>(
@@ -372,6 +394,31 @@ pub fn fit_held_out<E: Executor>(
     align_pose: bool,
     mean: &[f32],
 ) -> std::result::Result<(Vec<f32>, Pose), orbit_nerf_core::Error> {
+    fit_held_out_at(
+        trainer,
+        executor,
+        frame,
+        &frame.pose,
+        fit_steps,
+        align_pose,
+        mean,
+    )
+}
+
+/// [`fit_held_out`] at `pose` instead of the frame's label (its exact pose, say).
+pub fn fit_held_out_at<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    frame: &Frame,
+    pose: &Pose,
+    fit_steps: u32,
+    align_pose: bool,
+    mean: &[f32],
+) -> std::result::Result<(Vec<f32>, Pose), orbit_nerf_core::Error> {
+    let frame = &Frame {
+        pose: *pose,
+        ..frame.clone()
+    };
     let config = *trainer.config();
     let dim = config.embedding_dim as usize;
     let mut params = mean.to_vec();
@@ -416,6 +463,28 @@ pub fn evaluate<E: Executor>(
     align_poses: bool,
     render_dir: Option<&Path>,
 ) -> Result<Vec<ViewScore>> {
+    evaluate_at(
+        trainer,
+        executor,
+        dataset,
+        indices,
+        None,
+        (fit_steps, align_poses),
+        render_dir,
+    )
+}
+
+/// [`evaluate`] with each view at `poses[index]` (its exact pose, where the data has one)
+/// instead of its label when `poses` is given.
+pub fn evaluate_at<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    dataset: &Dataset,
+    indices: &[usize],
+    poses: Option<&[Pose]>,
+    (fit_steps, align_poses): (u32, bool),
+    render_dir: Option<&Path>,
+) -> Result<Vec<ViewScore>> {
     let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
     trainer.mean_embedding(&mut mean);
     let mut scores = Vec::with_capacity(indices.len());
@@ -427,8 +496,14 @@ pub fn evaluate<E: Executor>(
             .ok_or_else(|| HostError::invalid(&dataset.source, format!("no view {index}")))?;
         let start = Instant::now();
         let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
+        let at = match poses {
+            Some(poses) => poses.get(index).ok_or_else(|| {
+                HostError::invalid(&dataset.source, format!("no exact pose of view {index}"))
+            })?,
+            None => &frame.pose,
+        };
         let (embedding, pose) =
-            fit_held_out(trainer, executor, frame, fit_steps, align_poses, &mean)
+            fit_held_out_at(trainer, executor, frame, at, fit_steps, align_poses, &mean)
                 .map_err(|e| core_error(Path::new(&frame.name), e))?;
         let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
         let samples_per_ray = trainer

@@ -195,6 +195,21 @@ pub struct Config {
     /// Pose corrections stay at zero for this many steps, until the field has formed (early
     /// gradients of a blurry field push poses anywhere).
     pub pose_warmup_steps: u32,
+    /// The labels' stated attitude noise (the RMS angle of their rotation error, degrees):
+    /// a Gaussian prior holds each corrected pose toward its label, in training and in the
+    /// refinement (maximum a posteriori instead of free drift; 0: no prior).
+    pub pose_prior_rotation_deg: f32,
+    /// The labels' stated position noise (1 sigma per axis, world units) of the target's
+    /// position seen from the camera (a relative pose label's translation): the prior's
+    /// position part (0: no prior).
+    pub pose_prior_position: f32,
+    /// Levenberg-Marquardt iterations per frame of the pose refinement with the field frozen
+    /// (`Trainer::refine_pose`) after the last step. With 0 the trained corrections are kept
+    /// and only their uncertainty is computed: at a few hundred rays per frame the steps
+    /// fit the field's own errors about as often as the pose (README, pose correction).
+    pub pose_refine_iterations: u32,
+    /// Rays per frame of each refinement evaluation (run in batches of `rays_per_batch`).
+    pub pose_refine_rays: u32,
     /// BARF's coarse-to-fine schedule over the plane scales (0 turns it off): the first scale
     /// is on from the start and each finer one fades in, one after another, over this many
     /// steps, so early pose gradients see a smooth field. Scale `s >= 1` is weighted by
@@ -279,6 +294,10 @@ impl Config {
         pose_correction: false,
         pose_pivot: PosePivot::Camera,
         pose_warmup_steps: 0,
+        pose_prior_rotation_deg: 0.0,
+        pose_prior_position: 0.0,
+        pose_refine_iterations: 0,
+        pose_refine_rays: 512,
         coarse_to_fine_steps: 0,
         seed: 0,
     };
@@ -483,6 +502,22 @@ impl Config {
         if !(self.pose_lr_factor.is_finite() && (0.0..=0.01).contains(&self.pose_lr_factor)) {
             return bad("pose_lr_factor");
         }
+        if !(self.pose_prior_rotation_deg.is_finite()
+            && (0.0..=180.0).contains(&self.pose_prior_rotation_deg))
+        {
+            return bad("pose_prior_rotation_deg");
+        }
+        if !(self.pose_prior_position.is_finite()
+            && (0.0..=1e6).contains(&self.pose_prior_position))
+        {
+            return bad("pose_prior_position");
+        }
+        if self.pose_refine_iterations > 100 {
+            return bad("pose_refine_iterations");
+        }
+        if self.pose_refine_rays == 0 || self.pose_refine_rays > (1 << 24) {
+            return bad("pose_refine_rays");
+        }
         if self.coarse_to_fine_steps > self.steps {
             return bad("coarse_to_fine_steps");
         }
@@ -641,6 +676,11 @@ pub const fn forward_sample_floats(c: &Config) -> usize {
 /// background colour the ray is composited on.
 pub const RAY_FLOATS: usize = 15;
 
+/// f32 values per ray of a chunk for the pose gradients: d loss / d origin and d loss /
+/// d direction (6), then, in a pose refinement's Jacobian pass, the ray's weighted residual
+/// and its robust weight.
+pub const RAY_GRAD_FLOATS: usize = 8;
+
 impl MemoryPlan {
     /// Everything training needs.
     pub const fn new(c: &Config) -> MemoryPlan {
@@ -700,7 +740,7 @@ impl MemoryPlan {
             + align(chunk_rays * 4)
             + align((1 + t) * LANES * activation_floats(c) * 4)
             + t * align(LANES * widest_layer(c) * 4)
-            + t * align(chunk_rays * 6 * 4);
+            + t * align(chunk_rays * RAY_GRAD_FLOATS * 4);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes

@@ -104,6 +104,32 @@ fn foreground_box(width: u32, height: u32, is_foreground: impl Fn(usize) -> bool
     ]
 }
 
+/// Whether a pixel without a mask counts as foreground (see [`FOREGROUND_LEVEL`]).
+pub(crate) fn is_bright(rgb: &[u8]) -> bool {
+    rgb.iter().any(|&v| v > FOREGROUND_LEVEL)
+}
+
+/// [`foreground_box`] of the pixels in columns `columns.0..columns.1`, clipped to them (the
+/// columns themselves if none is foreground).
+pub(crate) fn foreground_box_within(
+    width: u32,
+    height: u32,
+    columns: (u32, u32),
+    is_foreground: impl Fn(usize) -> bool,
+) -> [u32; 4] {
+    let (c0, c1) = (columns.0.min(width), columns.1.min(width));
+    let [x0, x1, y0, y1] = foreground_box(width, height, |i| {
+        let x = (i % width.max(1) as usize) as u32;
+        (c0..c1).contains(&x) && is_foreground(i)
+    });
+    let (x0, x1) = (x0.max(c0), x1.min(c1));
+    if x0 < x1 {
+        [x0, x1, y0, y1]
+    } else {
+        [c0, c1.max(c0 + 1), 0, height]
+    }
+}
+
 /// Largest deviation of R^T R from the identity accepted for a pose label.
 const ORTHONORMAL_TOLERANCE: f32 = 1e-3;
 
@@ -207,11 +233,7 @@ impl<'a> FrameStore<'a> {
         let (w, h) = (camera.width as u32, camera.height as u32);
         let foreground = match mask {
             Some(mask) => foreground_box(w, h, |i| mask[i] != 0),
-            None => foreground_box(w, h, |i| {
-                pixels[i * 3..i * 3 + 3]
-                    .iter()
-                    .any(|&v| v > FOREGROUND_LEVEL)
-            }),
+            None => foreground_box(w, h, |i| is_bright(&pixels[i * 3..i * 3 + 3])),
         };
         self.meta[slot] = FrameMeta {
             width: camera.width as u32,

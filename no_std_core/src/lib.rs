@@ -27,7 +27,7 @@ pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
 pub use fused::{allow_wide_vectors, wide_vectors};
 pub use glam;
 pub use replacement::Ingested;
-pub use trainer::{Executor, Sequential, StepReport, Trainer};
+pub use trainer::{Executor, PoseFit, Sequential, StepReport, Trainer};
 
 /// Everything that can go wrong in the core; each names what was wrong.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -19,6 +19,20 @@ pub fn learning_rate(c: &Config, step: u32) -> f32 {
     base * (c.final_lr_factor + (1.0 - c.final_lr_factor) * cosine)
 }
 
+/// Learning rate of the pose corrections at `step`: zero before they start learning
+/// (`Config::pose_warmup_steps`), then a cosine from `learning_rate * pose_lr_factor` down
+/// to zero at the last step. Adam moves a parameter by about its rate whatever the size of
+/// its gradient, so a weakly constrained pose walks for as long as the rate lasts; a rate
+/// that ends at zero ends the walk.
+pub fn pose_learning_rate(c: &Config, step: u32) -> f32 {
+    if !c.pose_learns_at(step) {
+        return 0.0;
+    }
+    let span = c.steps.saturating_sub(c.pose_warmup_steps).max(1) as f32;
+    let progress = ((step - c.pose_warmup_steps) as f32 / span).min(1.0);
+    c.learning_rate * c.pose_lr_factor * 0.5 * (1.0 + libm::cosf(core::f32::consts::PI * progress))
+}
+
 /// The per-step constants of Adam with bias correction folded into the step size.
 #[derive(Clone, Copy, Debug)]
 pub struct AdamStep {
@@ -147,6 +161,23 @@ mod tests {
         assert!(learning_rate(&c, 500) < c.learning_rate);
         assert!((learning_rate(&c, 1000) - c.learning_rate * c.final_lr_factor).abs() < 1e-7);
         assert!((100..1000).all(|s| learning_rate(&c, s + 1) <= learning_rate(&c, s)));
+    }
+
+    #[test]
+    fn the_pose_rate_starts_after_the_warm_up_and_decays_to_zero() {
+        let mut c = Config::DEFAULT;
+        c.steps = 1000;
+        c.pose_correction = true;
+        c.pose_warmup_steps = 200;
+        assert_eq!(pose_learning_rate(&c, 199), 0.0);
+        let peak = c.learning_rate * c.pose_lr_factor;
+        assert!((pose_learning_rate(&c, 200) - peak).abs() < 1e-9);
+        assert!((200..1000).all(|s| pose_learning_rate(&c, s + 1) <= pose_learning_rate(&c, s)));
+        assert!(pose_learning_rate(&c, 999) < 1e-4 * peak);
+        assert_eq!(pose_learning_rate(&c, 1000), 0.0);
+        assert_eq!(pose_learning_rate(&c, 5000), 0.0);
+        c.pose_correction = false;
+        assert_eq!(pose_learning_rate(&c, 500), 0.0);
     }
 
     #[test]

@@ -45,6 +45,8 @@ pub mod domain {
     pub const FIT: u64 = 6;
     /// The replacement policy's choices when a frame streams in.
     pub const ADMIT: u64 = 7;
+    /// Pixels picked for the rays of a pose refinement.
+    pub const REFINE: u64 = 8;
 }
 
 /// A small sequential generator for initialisation and tests.

@@ -1,7 +1,7 @@
 //! `orbit-nerf demo`: the built-in default. Simulate the lightbox preset, train the method,
 //! evaluate and write a report.
 
-use super::ablate::{geometry_section, simulated, true_surface};
+use super::ablate::{geometry_section, pose_sections, simulated, stated_label_noise, true_surface};
 use super::train::TRAIN_BAR;
 use super::{CliResult, FIT_STEPS, RunningPsnr, bar_style};
 use clap::Args;
@@ -52,6 +52,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
     )?;
     let (train_idx, test_idx) = dataset::split_every(dataset.frames.len(), 8);
     let mut config = Config::SPACECRAFT;
+    stated_label_noise("lightbox")?.state_in(&mut config);
     config.steps = args.steps.unwrap_or(DEMO_STEPS);
     config.warmup_steps = config.warmup_steps.min(config.steps);
     let bar = ProgressBar::new(config.steps as u64).with_style(bar_style(TRAIN_BAR)?);
@@ -95,6 +96,7 @@ pub fn run(args: &DemoArgs) -> CliResult {
             after,
         )]));
     }
+    text.push_str(&pose_sections(&[&result]));
     text.push_str(&geometry_section(&[&result], &true_surface("lightbox")?));
     text.push_str("\n## Held-out views (truth, render)\n\n");
     for (k, &index) in test_idx.iter().enumerate().take(4) {

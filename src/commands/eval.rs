@@ -61,6 +61,8 @@ pub fn run(args: &EvalArgs) -> CliResult {
             mean,
             views: train::view_figures(&scores),
             training: None,
+            mean_at: None,
+            pose_refinement: None,
         };
         Figures::new("eval", vec![model]).write(dir)?;
         println!("metrics.json in {}", dir.display());

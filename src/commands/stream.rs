@@ -446,6 +446,8 @@ fn figures(
                 seconds,
                 samples_per_ray: f64::NAN,
             }),
+            mean_at: None,
+            pose_refinement: None,
         });
     }
     if let Some((metrics, _, _)) = offline {
@@ -454,6 +456,8 @@ fn figures(
             mean: *metrics,
             views: Vec::new(),
             training: None,
+            mean_at: None,
+            pose_refinement: None,
         });
     }
     Figures::new("stream", models)

@@ -321,6 +321,9 @@ fn train_and_score(
         samples: result.samples,
         pose_before: result.pose_before.map(Into::into),
         pose_after: result.pose_after.map(Into::into),
+        metrics_exact: result.metrics_exact.map(Into::into),
+        metrics_aligned: Some(result.metrics_aligned.into()),
+        pose_uncertainty: result.pose_uncertainty,
         checkpoint_fnv1a: format!("{:016x}", fnv1a(&bytes)),
     };
     let timing = TaskTiming {

@@ -11,7 +11,9 @@ use indicatif::ProgressBar;
 use orbit_nerf_core::{Executor, Trainer};
 use orbit_nerf_host::dataset::Frame;
 use orbit_nerf_host::io;
-use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures};
+use orbit_nerf_host::report::{
+    self, Figures, ModelFigures, PoseRefinementFigures, TrainingFigures,
+};
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -118,6 +120,12 @@ pub fn run(args: &TrainArgs) -> CliResult {
         }
         let summary = train_loop(trainer, &executor, args.stop_after)?;
         print_summary(&summary);
+        // A finished run's last stage: the poses' refinement with the field frozen.
+        let pose_fits = if trainer.state().step >= config.steps {
+            train::refine_poses(trainer, &executor)?
+        } else {
+            Vec::new()
+        };
         let tally = train::TrainingTally {
             steps: summary.steps,
             samples: summary.samples,
@@ -158,6 +166,8 @@ pub fn run(args: &TrainArgs) -> CliResult {
                 seconds: summary.seconds,
                 samples_per_ray: summary.samples as f64 / summary.rays.max(1) as f64,
             }),
+            mean_at: None,
+            pose_refinement: pose_refinement(trainer, &frames, &pose_fits),
         };
         Figures::new("train", vec![model]).write(&args.out)?;
         println!(
@@ -166,6 +176,39 @@ pub fn run(args: &TrainArgs) -> CliResult {
         );
         Ok(())
     })
+}
+
+/// The training poses' refinement figures for `metrics.json` (with pose correction), and
+/// their mean 1-sigma printed.
+fn pose_refinement(
+    trainer: &Trainer<'_>,
+    frames: &[&Frame],
+    fits: &[orbit_nerf_core::PoseFit],
+) -> Option<PoseRefinementFigures> {
+    if fits.is_empty() {
+        return None;
+    }
+    let pivot = trainer.config().pose_pivot_point();
+    let names: Vec<String> = frames.iter().map(|f| f.name.clone()).collect();
+    let corrected: Vec<_> = (frames.iter().enumerate())
+        .map(|(slot, f)| {
+            let correction = trainer.pose_correction(slot).unwrap_or_default();
+            correction.apply(&f.pose, pivot)
+        })
+        .collect();
+    let frames = report::frame_poses(&names, fits, &corrected, None);
+    let summary = report::pose_uncertainty(&frames);
+    println!(
+        "pose uncertainty (1 sigma, mean over {} frames): attitude {} deg, position {}",
+        summary.frames,
+        summary
+            .rotation_sigma_deg_mean
+            .map_or("n/a".into(), |v| format!("{v:.3}")),
+        summary
+            .position_sigma_mean
+            .map_or("n/a".into(), |v| format!("{v:.4}"))
+    );
+    Some(PoseRefinementFigures { summary, frames })
 }
 
 /// A resumed run trains on the frames its checkpoint holds: refuse data whose training views

@@ -4,7 +4,7 @@
 //! view, and how the model trained. A value that is not a number (NaN: no SSIM window, no
 //! JNB edge block, no mask; or an infinite PSNR) is written as `null`.
 
-use super::ViewMetrics;
+use super::{FramePose, PoseUncertainty, ViewMetrics};
 use crate::error::{HostError, Result};
 use serde::Serialize;
 use std::path::Path;
@@ -25,9 +25,33 @@ pub struct Figures {
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelFigures {
     pub name: String,
+    /// The mean over the held-out views, each at its label.
     pub mean: ViewMetrics,
     pub views: Vec<ViewFigures>,
     pub training: Option<TrainingFigures>,
+    /// The same means with the views at their exact poses and aligned, where scored.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mean_at: Option<MeansAt>,
+    /// The training poses' refinement: each frame's uncertainty (and true error, where
+    /// known) and their summary.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose_refinement: Option<PoseRefinementFigures>,
+}
+
+/// Held-out means at other poses than the labels.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct MeansAt {
+    /// Each view at its exact pose (`None` where the data has none).
+    pub exact_poses: Option<ViewMetrics>,
+    /// Each view at its label aligned by the pose refinement on its left half.
+    pub aligned: ViewMetrics,
+}
+
+/// The pose refinement's figures.
+#[derive(Clone, Debug, Serialize)]
+pub struct PoseRefinementFigures {
+    pub summary: PoseUncertainty,
+    pub frames: Vec<FramePose>,
 }
 
 /// One held-out view's metrics, its mean samples per ray and seconds (fit and render).
@@ -92,6 +116,8 @@ mod tests {
                 mean: metrics,
                 views: vec![],
                 training: None,
+                mean_at: None,
+                pose_refinement: None,
             }],
         );
         let dir = tempfile::tempdir().unwrap();

@@ -23,15 +23,20 @@ mod views;
 
 #[cfg(feature = "profile")]
 pub use bars::stacked_bars;
-pub use figures::{FIGURES_SCHEMA, Figures, ModelFigures, TrainingFigures, ViewFigures};
+pub use figures::{
+    FIGURES_SCHEMA, Figures, MeansAt, ModelFigures, PoseRefinementFigures, TrainingFigures,
+    ViewFigures,
+};
 pub use plot::{labelled_scatter, line_plot};
 pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};
 pub use poses::{
-    PoseErrors, pose_errors, rotation_error_deg, rotation_error_split_deg, translation_error,
+    FramePose, PoseErrors, PoseUncertainty, frame_poses, pose_errors, pose_uncertainty,
+    rotation_error_deg, rotation_error_split_deg, translation_error,
 };
 pub use strip::side_by_side;
 pub use tables::{
-    ModelRow, ablation_table, format_or_na, geometry_table, markdown_table, pose_error_table,
+    ModelRow, ablation_table, format_or_na, geometry_table, held_out_poses_table, markdown_table,
+    pose_error_table, pose_uncertainty_table,
 };
 pub use views::{ViewMetrics, mean_metrics, score_view};
 

@@ -11,7 +11,10 @@ use std::path::Path;
 /// What one model gave at one noise level.
 #[derive(Clone, Copy, Debug)]
 pub struct ModelOutcome {
+    /// Held-out means at the labels, at the exact poses and aligned (where known).
     pub metrics: ViewMetrics,
+    pub metrics_exact: Option<ViewMetrics>,
+    pub metrics_aligned: Option<ViewMetrics>,
     pub pose_before: Option<PoseErrors>,
     pub pose_after: Option<PoseErrors>,
 }
@@ -102,6 +105,9 @@ fn sweep_table(
         "about view axis labels / corrected deg",
         "across view axis labels / corrected deg",
         "position error labels / corrected mm",
+        "PSNR at labels ours / ours+pose",
+        "PSNR at exact poses ours / ours+pose",
+        "PSNR aligned ours / ours+pose",
     ];
     let rows: Vec<Vec<String>> = rows
         .iter()
@@ -109,6 +115,8 @@ fn sweep_table(
             let (ours, pose) = (&l.ours, &l.pose);
             let before = pose.pose_before.unwrap_or_default();
             let after = pose.pose_after.unwrap_or_default();
+            let psnr = |m: Option<ViewMetrics>| m.map_or(f64::NAN, |m| m.psnr_full);
+            let pair = |a: f64, b: f64| format!("{} / {}", format_or_na(a, 2), format_or_na(b, 2));
             vec![
                 format!("{}", level(&l.noise)),
                 format_or_na(ours.metrics.ssim_full, 4),
@@ -132,6 +140,9 @@ fn sweep_table(
                     before.translation_mean * 1000.0,
                     after.translation_mean * 1000.0
                 ),
+                pair(ours.metrics.psnr_full, pose.metrics.psnr_full),
+                pair(psnr(ours.metrics_exact), psnr(pose.metrics_exact)),
+                pair(psnr(ours.metrics_aligned), psnr(pose.metrics_aligned)),
             ]
         })
         .collect();

@@ -3,6 +3,7 @@
 
 use super::mean;
 use glam::DVec3;
+use orbit_nerf_core::PoseFit;
 use orbit_nerf_core::camera::Pose;
 
 /// Angle in degrees, in [0, 180], of the relative rotation `R_a^T R_b`.
@@ -86,6 +87,80 @@ pub fn pose_errors(estimated: &[Pose], truth: &[Pose]) -> PoseErrors {
         about_view_axis_deg_mean: mean(&about),
         across_view_axis_deg_mean: mean(&across),
         frames: rotations.len(),
+    }
+}
+
+/// One training frame's refined pose: its 1-sigma uncertainty from the refinement and,
+/// where the exact pose is known, its true error (`metrics.json`, the ablation report).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct FramePose {
+    pub name: String,
+    /// `None` (JSON null) where the view does not constrain the pose (no finite sigma).
+    pub rotation_sigma_deg: Option<f64>,
+    pub position_sigma: Option<f64>,
+    pub rotation_error_deg: Option<f64>,
+    pub position_error: Option<f64>,
+}
+
+/// Each frame's [`FramePose`]: `fits`, `corrected` and `names` in the same order, `exact`
+/// too when the data has exact poses.
+pub fn frame_poses(
+    names: &[String],
+    fits: &[PoseFit],
+    corrected: &[Pose],
+    exact: Option<&[Pose]>,
+) -> Vec<FramePose> {
+    let finite = |v: f32| v.is_finite().then_some(v as f64);
+    (names.iter().zip(fits).zip(corrected).enumerate())
+        .map(|(i, ((name, fit), pose))| {
+            let truth = exact.and_then(|e| e.get(i));
+            FramePose {
+                name: name.clone(),
+                rotation_sigma_deg: finite(fit.rotation_sigma_deg),
+                position_sigma: finite(fit.position_sigma),
+                rotation_error_deg: truth.map(|t| rotation_error_deg(pose, t)),
+                position_error: truth.map(|t| translation_error(pose, t)),
+            }
+        })
+        .collect()
+}
+
+/// The refined poses' uncertainty over the frames: the mean 1-sigma attitude and position
+/// uncertainties (over the frames with a finite one) and, where the exact poses are known,
+/// the fraction of frames whose true error lies within 3 sigma (a frame without a finite
+/// sigma counts as inside).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PoseUncertainty {
+    pub rotation_sigma_deg_mean: Option<f64>,
+    pub position_sigma_mean: Option<f64>,
+    pub rotation_within_3_sigma: Option<f64>,
+    pub position_within_3_sigma: Option<f64>,
+    pub frames: usize,
+}
+
+/// [`PoseUncertainty`] of `frames`.
+pub fn pose_uncertainty(frames: &[FramePose]) -> PoseUncertainty {
+    let finite_mean = |f: fn(&FramePose) -> Option<f64>| {
+        let values: Vec<f64> = frames.iter().filter_map(f).collect();
+        (!values.is_empty()).then(|| mean(&values))
+    };
+    let within = |error: fn(&FramePose) -> Option<f64>, sigma: fn(&FramePose) -> Option<f64>| {
+        let inside: Vec<bool> = frames
+            .iter()
+            .filter_map(|f| {
+                let e = error(f)?;
+                Some(sigma(f).is_none_or(|s| e <= 3.0 * s))
+            })
+            .collect();
+        (!inside.is_empty())
+            .then(|| inside.iter().filter(|&&b| b).count() as f64 / inside.len() as f64)
+    };
+    PoseUncertainty {
+        rotation_sigma_deg_mean: finite_mean(|f| f.rotation_sigma_deg),
+        position_sigma_mean: finite_mean(|f| f.position_sigma),
+        rotation_within_3_sigma: within(|f| f.rotation_error_deg, |f| f.rotation_sigma_deg),
+        position_within_3_sigma: within(|f| f.position_error, |f| f.position_sigma),
+        frames: frames.len(),
     }
 }
 

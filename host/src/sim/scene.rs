@@ -354,6 +354,26 @@ pub struct LabelNoise {
     pub translation_m: f32,
 }
 
+impl LabelNoise {
+    /// The labels are never stated better than this (degrees, 1 sigma): a star tracker's
+    /// attitude floor, so that labels simulated exact still let the pose correction move a
+    /// little instead of freezing it.
+    pub const FLOOR_ROTATION_DEG: f32 = 0.1;
+    /// Likewise for the camera position (metres, 1 sigma).
+    pub const FLOOR_TRANSLATION_M: f32 = 0.002;
+
+    /// Set `config`'s label prior (`pose_prior_rotation_deg`, `pose_prior_position`) to
+    /// this noise, floored at [`Self::FLOOR_ROTATION_DEG`] and
+    /// [`Self::FLOOR_TRANSLATION_M`], unless the config states a prior of its own.
+    pub fn state_in(&self, config: &mut orbit_nerf_core::Config) {
+        if config.pose_prior_rotation_deg > 0.0 || config.pose_prior_position > 0.0 {
+            return;
+        }
+        config.pose_prior_rotation_deg = self.rotation_deg.max(Self::FLOOR_ROTATION_DEG);
+        config.pose_prior_position = self.translation_m.max(Self::FLOOR_TRANSLATION_M);
+    }
+}
+
 /// A checked scene, with where it came from (for messages and relative paths).
 #[derive(Clone, Debug)]
 pub struct Scene {

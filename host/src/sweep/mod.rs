@@ -468,6 +468,9 @@ impl SweepDescription {
                 for &seed in &seeds {
                     let mut config = *config;
                     config.seed = seed;
+                    if let Some(noise) = level {
+                        noise.state_in(&mut config);
+                    }
                     let level_name = level.map_or(String::new(), |n| {
                         format!(
                             "noise {} deg / {} mm, ",
@@ -783,6 +786,9 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
         assert_eq!(tasks[0].config, {
             let mut c = Config::SPACECRAFT;
             c.embedding_dim = crate::ablation::EMBEDDING_DIM;
+            // The level's label noise is the pose prior (its position part at the floor).
+            c.pose_prior_rotation_deg = 0.2;
+            c.pose_prior_position = LabelNoise::FLOOR_TRANSLATION_M;
             c
         });
     }

@@ -9,8 +9,8 @@ use super::{Source, Sweep, Task};
 use crate::error::{HostError, Result};
 use crate::io::{write_atomic, write_png};
 use crate::report::{
-    ModelOutcome, NoiseLevelResult, PoseErrors, ViewMetrics, format_or_na, markdown_table,
-    mean_metrics, pose_noise_sections, side_by_side,
+    ModelOutcome, NoiseLevelResult, PoseErrors, PoseUncertainty, ViewMetrics, format_or_na,
+    markdown_table, mean_metrics, pose_noise_sections, side_by_side,
 };
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -62,6 +62,15 @@ pub struct TaskResult {
     /// Pose error of the training labels and of the corrected labels against the exact poses.
     pub pose_before: Option<Poses>,
     pub pose_after: Option<Poses>,
+    /// The held-out means with each view at its exact pose (where the data has them) and
+    /// aligned at its label by the pose refinement; `metrics` is at the labels.
+    #[serde(default)]
+    pub metrics_exact: Option<Metrics>,
+    #[serde(default)]
+    pub metrics_aligned: Option<Metrics>,
+    /// The refined training poses' uncertainty (with pose correction).
+    #[serde(default)]
+    pub pose_uncertainty: Option<PoseUncertainty>,
     /// FNV-1a (64 bit) of the checkpoint file's bytes, hex.
     pub checkpoint_fnv1a: String,
 }
@@ -380,8 +389,11 @@ fn table(results: &[TaskResult], noise: bool) -> String {
         "fg dB",
         "SSIM",
         "JNB",
+        "PSNR exact / aligned dB",
         "rot. error labels / corrected deg",
         "position error labels / corrected mm",
+        "1-sigma rot. deg / pos. mm",
+        "within 3 sigma rot. / pos.",
         "checkpoint fnv1a",
     ]);
     let rows: Vec<Vec<String>> = results
@@ -399,8 +411,29 @@ fn table(results: &[TaskResult], noise: bool) -> String {
                 fixed(m.psnr_foreground, 2),
                 fixed(m.ssim_full, 4),
                 fixed(m.jnb_full, 4),
+                format!(
+                    "{} / {}",
+                    fixed(r.metrics_exact.and_then(|m| m.psnr_full), 2),
+                    fixed(r.metrics_aligned.and_then(|m| m.psnr_full), 2)
+                ),
                 pose_pair(r.pose_before, r.pose_after, |p| p.rotation_deg_mean, 1.0),
                 pose_pair(r.pose_before, r.pose_after, |p| p.translation_mean, 1000.0),
+                match r.pose_uncertainty {
+                    Some(u) => format!(
+                        "{} / {}",
+                        fixed(u.rotation_sigma_deg_mean, 3),
+                        fixed(u.position_sigma_mean.map(|v| v * 1000.0), 1)
+                    ),
+                    None => "n/a".into(),
+                },
+                match r.pose_uncertainty {
+                    Some(u) => format!(
+                        "{} / {}",
+                        fixed(u.rotation_within_3_sigma, 2),
+                        fixed(u.position_within_3_sigma, 2)
+                    ),
+                    None => "n/a".into(),
+                },
                 r.checkpoint_fnv1a.clone(),
             ]);
             row
@@ -526,8 +559,15 @@ fn noise_levels(sweep: &Sweep, results: &[TaskResult]) -> Vec<NoiseLevelResult> 
                     .collect();
                 (all.len() == runs.len()).then(|| mean_pose_errors(&all))
             };
+            let mean_of = |f: fn(&TaskResult) -> Option<Metrics>| -> Option<ViewMetrics> {
+                let all: Vec<ViewMetrics> =
+                    runs.iter().filter_map(|r| f(r)).map(Into::into).collect();
+                (all.len() == runs.len()).then(|| mean_metrics(&all))
+            };
             Some(ModelOutcome {
                 metrics: mean_metrics(&metrics),
+                metrics_exact: mean_of(|r| r.metrics_exact),
+                metrics_aligned: mean_of(|r| r.metrics_aligned),
                 pose_before: mean_poses(|r| r.pose_before),
                 pose_after: mean_poses(|r| r.pose_after),
             })

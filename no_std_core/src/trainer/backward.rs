@@ -37,6 +37,21 @@ impl Chunk<'_> {
                     self.report.squared_error += e * e;
                     d_colour[ch] = 2.0 * e * norm;
                 }
+                if let Some(ch) = shared.jacobian_channel {
+                    // A refinement's Jacobian pass: the backward pass of the one channel's
+                    // colour itself, scaled by the root of its robust weight, gives the
+                    // ray's weighted Jacobian row.
+                    let e = colour[ch] - target[ch];
+                    let (weight, cost) = robust_residual(e, target);
+                    let root = libm::sqrtf(weight);
+                    d_colour = [0.0; 3];
+                    d_colour[ch] = root;
+                    let g = first + r - self.first_ray;
+                    let g = &mut self.ray_grads[g * RAY_GRAD_FLOATS..(g + 1) * RAY_GRAD_FLOATS];
+                    g[6] = root * e;
+                    g[7] = weight;
+                    self.report.robust_cost += cost;
+                }
                 render::composite_backward(
                     &self.sigma[start..kept_end],
                     &self.rgb[start..kept_end],
@@ -56,9 +71,34 @@ impl Chunk<'_> {
         }
         if shared.pose_gradients {
             let mut laps = shared.timer.laps();
-            self.fold_ray_gradients(shared, self.ray_count);
+            if shared.jacobian_channel.is_some() {
+                self.add_to_pose_system(shared);
+            } else {
+                self.fold_ray_gradients(shared, self.ray_count);
+            }
             laps.lap(Stage::PlaneBackward, &mut self.times);
         }
+    }
+
+    /// A refinement's Jacobian pass: each ray's weighted Jacobian row with respect to the
+    /// six pose parameters into the chunk's normal equations (J^T W J, J^T W r).
+    fn add_to_pose_system(&mut self, shared: &Shared<'_>) {
+        let Some((params, center)) = shared.fit_pose else {
+            return;
+        };
+        let correction = PoseCorrection::from_params(&params, shared.length_unit);
+        let arm = shared
+            .config
+            .pose_pivot_point()
+            .map(|p| Vec3::from_array(center) - p);
+        let system = &mut self.pose_system;
+        for r in 0..self.ray_count {
+            let g = &self.ray_grads[r * RAY_GRAD_FLOATS..(r + 1) * RAY_GRAD_FLOATS];
+            let label = Vec3::from_array(shared.rays[self.first_ray + r].label_direction);
+            let j = pose_parameter_gradient(&correction, label, arm, g, shared.length_unit);
+            system.add(&j, g[6], g[7]);
+        }
+        system.rows += self.ray_count as u32;
     }
 
     /// Move each ray's origin and direction gradients to its frame's pose correction (the
@@ -82,20 +122,17 @@ impl Chunk<'_> {
                 }
                 (None, Embedding::Fixed(_)) => return,
             };
-            let g = &self.ray_grads[r * 6..r * 6 + 6];
+            let g = &self.ray_grads[r * RAY_GRAD_FLOATS..r * RAY_GRAD_FLOATS + 6];
             let correction = PoseCorrection::from_params(&params, shared.length_unit);
             let label = Vec3::from_array(shared.rays[ray].label_direction);
-            let mut d_v = correction.rotation_vjp(label, Vec3::new(g[3], g[4], g[5]));
-            // With a pivot the origin is p + R (c - p) + u: the rotation also moves it.
-            if let (Some(p), Some(center)) = (pivot, center) {
-                let arm = Vec3::from_array(center) - p;
-                d_v += correction.rotation_vjp(arm, Vec3::new(g[0], g[1], g[2]));
-            }
+            let arm = match (pivot, center) {
+                (Some(p), Some(center)) => Some(Vec3::from_array(center) - p),
+                _ => None,
+            };
+            let d = pose_parameter_gradient(&correction, label, arm, g, shared.length_unit);
             let dst = &mut self.frame_grads[slot * n + dim..(slot + 1) * n];
-            for a in 0..3 {
-                // The parameter is u, with dt = u * length_unit.
-                dst[a] += g[a] * shared.length_unit;
-                dst[3 + a] += d_v[a];
+            for (a, b) in dst.iter_mut().zip(d) {
+                *a += b;
             }
         }
     }
@@ -253,8 +290,8 @@ impl Chunk<'_> {
                     // The view encoding's share of d loss / d direction.
                     let d_view =
                         field::sh_backward(c.sh_bands as usize, d.to_array(), &d_sh[..sh_len]);
-                    let g = &mut self.ray_grads
-                        [(r - self.first_ray) * 6 + 3..(r - self.first_ray) * 6 + 6];
+                    let at = (r - self.first_ray) * RAY_GRAD_FLOATS;
+                    let g = &mut self.ray_grads[at + 3..at + 6];
                     for a in 0..3 {
                         g[a] += d_view[a];
                     }
@@ -327,8 +364,8 @@ impl Chunk<'_> {
                     let (o, d) = Self::ray(shared, r);
                     let d_x = Vec3::from_array(d_u) / extent;
                     let d_d = d_x * (x - o).dot(d);
-                    let g =
-                        &mut self.ray_grads[(r - self.first_ray) * 6..(r - self.first_ray) * 6 + 6];
+                    let at = (r - self.first_ray) * RAY_GRAD_FLOATS;
+                    let g = &mut self.ray_grads[at..at + 6];
                     for a in 0..3 {
                         g[a] += d_x[a];
                         g[3 + a] += d_d[a];
@@ -353,4 +390,46 @@ fn backward_layer(
 ) {
     let (dw, db) = grads[l.weights..l.biases + l.outputs].split_at_mut(l.biases - l.weights);
     field::layer_backward(&params[l.weights..l.biases], x, dy, dx, dw, db, lane_major);
+}
+
+/// d loss / d pose parameters `[u, v]` of one ray from `g`, its d loss / d origin (0..3)
+/// and d loss / d direction (3..6): the direction is the label's `label` turned by the
+/// correction, and with a pivot the origin is `p + R arm + u * length_unit` (`arm` = the
+/// label's centre minus the pivot), so the rotation moves it too.
+pub(super) fn pose_parameter_gradient(
+    correction: &PoseCorrection,
+    label: Vec3,
+    arm: Option<Vec3>,
+    g: &[f32],
+    length_unit: f32,
+) -> [f32; POSE_PARAMS] {
+    let d_origin = Vec3::new(g[0], g[1], g[2]);
+    let mut d_v = correction.rotation_vjp(label, Vec3::new(g[3], g[4], g[5]));
+    if let Some(arm) = arm {
+        d_v += correction.rotation_vjp(arm, d_origin);
+    }
+    let d_u = d_origin * length_unit;
+    [d_u.x, d_u.y, d_u.z, d_v.x, d_v.y, d_v.z]
+}
+
+/// Residuals beyond this (colour units) count linearly in a pose refinement (Huber's
+/// loss): a glint or a part the field has wrong pulls the pose less than its square would.
+const ROBUST_SCALE: f32 = 0.1;
+
+/// A target channel at or above this is saturated (a clipped glint): its true brightness is
+/// unknown, so it carries no weight in a pose refinement.
+const SATURATED: f32 = 254.0 / 255.0;
+
+/// The robust weight of residual `e` of a pixel whose target colour is `target` (Huber's,
+/// 0 on a saturated pixel), and its Huber cost.
+pub(super) fn robust_residual(e: f32, target: [f32; 3]) -> (f32, f32) {
+    if target.iter().any(|&t| t >= SATURATED) || !e.is_finite() {
+        return (0.0, 0.0);
+    }
+    let a = e.abs();
+    if a <= ROBUST_SCALE {
+        (1.0, 0.5 * e * e)
+    } else {
+        (ROBUST_SCALE / a, ROBUST_SCALE * (a - 0.5 * ROBUST_SCALE))
+    }
 }

@@ -82,6 +82,8 @@ pub(super) struct Chunk<'a> {
     pub(super) first_ray: usize,
     pub(super) ray_count: usize,
     pub(super) report: ChunkReport,
+    /// A pose refinement's normal equations over this chunk's rays (Jacobian passes).
+    pub(super) pose_system: PoseSystem,
     /// Time this chunk spent per stage since the trainer last collected it (profiling).
     pub(super) times: StageTimes,
 }
@@ -92,6 +94,8 @@ pub(super) struct ChunkReport {
     pub(super) rays: u32,
     pub(super) samples: u32,
     pub(super) marched: u32,
+    /// Huber cost of a Jacobian pass's channel residuals (`backward::robust_residual`).
+    pub(super) robust_cost: f32,
 }
 
 impl Chunk<'_> {

@@ -12,11 +12,13 @@ const FIT_LEARNING_RATE: f32 = 0.05;
 
 impl<'a> Trainer<'a> {
     /// Fit a held-out view's frame parameters to its image with the field frozen: its
-    /// appearance embedding (the paper's and K-Planes' evaluation) and, with `align_pose`,
-    /// its pose correction too (BARF's test-time alignment: the view is then scored at its
-    /// corrected label, not at the label's noise; the correction learns at the embedding's
-    /// rate times `pose_lr_factor`, about `pose_pivot`, as in training). `steps` Adam steps, each on a batch of rays through the pixels in columns
-    /// `columns.0..columns.1` (the left half, in the paper). `params` (`frame_params()`
+    /// appearance embedding (the paper's and K-Planes' evaluation), `steps` Adam steps, each
+    /// on a batch of rays through the pixels in columns `columns.0..columns.1` (the left
+    /// half, in the paper), and with `align_pose` its pose correction too (test-time
+    /// alignment: the view is then scored at its corrected label, not at the label's noise):
+    /// Adam steps on it with the embedding's (at the embedding's rate times
+    /// `pose_lr_factor`, about `pose_pivot`, as in training), then the refinement training
+    /// frames get ([`Trainer::refine_pose`], on the same columns). `params` (`frame_params()`
     /// values: the embedding, then the correction) holds the starting point (the mean
     /// training embedding, no correction) and receives the result; the corrected pose is
     /// `PoseCorrection::from_params(&params[embedding_dim..], length_unit)` applied to
@@ -64,13 +66,17 @@ impl<'a> Trainer<'a> {
         const MOST: usize = 128 + POSE_PARAMS;
         let (mut m, mut v) = ([0.0f32; MOST], [0.0f32; MOST]);
         let mut mse = 0.0;
+        // With alignment, the pose follows the loss's gradient with the embedding (Adam's
+        // small steps reach poses a Gauss-Newton step from the label would overshoot), and
+        // the refinement training frames get finishes it.
         for step in 0..steps {
+            let learn_pose = align_pose;
             let mut grad = [0.0f32; MOST];
             let squared_error = self.fit_pass(
                 executor,
                 (camera, pose, pixels),
                 (x0, x1),
-                (step, align_pose),
+                (step, learn_pose),
                 params,
                 &mut grad[..n],
                 &mut laps,
@@ -86,7 +92,7 @@ impl<'a> Trainer<'a> {
                 &mut m[..dim],
                 &mut v[..dim],
             );
-            if align_pose {
+            if learn_pose {
                 let adam = AdamStep::new(&c, FIT_LEARNING_RATE * c.pose_lr_factor, step + 1);
                 adam.apply(
                     &mut params[dim..n],
@@ -96,14 +102,20 @@ impl<'a> Trainer<'a> {
                 );
             }
         }
+        if align_pose && c.pose_refine_iterations > 0 {
+            let view = (camera, pose, pixels);
+            let iterations = c.pose_refine_iterations;
+            self.refine_image_pose(executor, view, (x0, x1), params, iterations);
+        }
         self.profile
             .serial(&mut laps, Bucket::Render, Stage::FitEmbedding);
         Ok(mse)
     }
 
     /// One step of [`Trainer::fit_view`] without the update: a batch of rays through the
-    /// view's pixels in `columns` (drawn by `step`), through the pose corrected by `params`
-    /// (with `align_pose`), their loss and its gradient with respect to `params` into `grad`.
+    /// view's pixels in `columns` (drawn by `step`), through the pose corrected by `params`,
+    /// their loss and its gradient with respect to the embedding (and with `align_pose` the
+    /// pose correction) into `grad`.
     /// Returns the mean squared error. `laps` charges the chunks' work to the profile.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn fit_pass<E: Executor>(
@@ -118,11 +130,8 @@ impl<'a> Trainer<'a> {
     ) -> f32 {
         let c = self.config;
         let dim = c.embedding_dim as usize;
-        let correction = if align_pose {
-            PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]), self.length_unit)
-        } else {
-            PoseCorrection::default()
-        };
+        let correction =
+            PoseCorrection::from_params(params.get(dim..).unwrap_or(&[]), self.length_unit);
         let pivot = c.pose_pivot_point();
         for r in 0..c.rays_per_batch as usize {
             let bits = rng::hash(c.seed, domain::FIT, step as u64, r as u64);

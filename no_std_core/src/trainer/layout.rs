@@ -122,7 +122,7 @@ impl<'a> Trainer<'a> {
             let act = carver.take::<Row>(rows + t(rows))?;
             let (activations, gradients) = act.split_at_mut(rows);
             let lane_major = carver.take::<f32>(t(LANES * widest_layer(c)))?;
-            let ray_grads = carver.take::<f32>(t(chunk_rays * 6))?;
+            let ray_grads = carver.take::<f32>(t(chunk_rays * RAY_GRAD_FLOATS))?;
             let chunk = Chunk {
                 plane_grads,
                 touched,
@@ -148,6 +148,7 @@ impl<'a> Trainer<'a> {
                 first_ray: i * chunk_rays,
                 ray_count: chunk_rays,
                 report: ChunkReport::default(),
+                pose_system: PoseSystem::default(),
                 times: StageTimes::default(),
             };
             if chunk_list.push(chunk).is_err() {

@@ -16,8 +16,8 @@ use crate::arena::Carver;
 use crate::config::{
     COLOUR_HIDDEN1, COLOUR_HIDDEN2, COLOUR_OUT, Config, DENSITY_HIDDEN, DENSITY_OUT, LANES,
     MAX_CHUNKS, MAX_COLOUR_HIDDEN, MAX_SCALES, MemoryPlan, MlpLayout, POSE_PARAMS, RAY_FLOATS,
-    TexelUpdate, activation_floats, colour_activation_rows, density_activation_rows,
-    forward_sample_floats, sample_floats, widest_layer,
+    RAY_GRAD_FLOATS, TexelUpdate, activation_floats, colour_activation_rows,
+    density_activation_rows, forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
 use crate::frames::{FrameMeta, FrameStore, mean_brightness};
@@ -39,6 +39,7 @@ mod chunk;
 mod inference;
 mod layout;
 mod occupancy;
+mod pose;
 mod slots;
 mod step;
 #[cfg(test)]
@@ -46,6 +47,10 @@ mod tests;
 
 use batch::BatchRay;
 use chunk::Chunk;
+pub use pose::PoseFit;
+use pose::PoseSystem;
+#[cfg(test)]
+use pose::{RaySet, View};
 
 /// Runs a closure over every item, possibly in parallel. Results must not depend on the
 /// order or the thread: the core gives each item its own buffers.
@@ -91,6 +96,9 @@ pub struct TrainState {
     pub skipped: u32,
     /// Occupancy refreshes done.
     pub refreshes: u32,
+    /// Updates applied to the pose corrections (their Adam's time step: their moments
+    /// start at zero when they start learning, after `pose_warmup_steps`).
+    pub pose_updates: u32,
 }
 
 /// The trainer and everything it owns, all borrowed from one arena.
@@ -137,8 +145,9 @@ enum Pass<'s> {
     /// A training step: each ray uses its frame's embedding; draws are keyed by the step.
     Train,
     /// One step of fitting a held-out view's frame parameters (`params`: embedding, then
-    /// pose correction) to its image with the field frozen; `center` is the label's camera
-    /// centre; the pose correction gets gradients with `align_pose`.
+    /// the pose correction its rays went through) to its image with the field frozen;
+    /// `center` is the label's camera centre; the pose correction gets gradients with
+    /// `align_pose`.
     FitView {
         params: &'s [f32],
         center: [f32; 3],
@@ -149,6 +158,14 @@ enum Pass<'s> {
     Render { embedding: &'s [f32] },
     /// Re-estimating the occupancy grid; draws are keyed by the refresh count.
     Occupancy,
+    /// One Jacobian pass of a pose refinement (`refine`): a view's frame parameters
+    /// (`params`: embedding, then pose correction) with the field frozen, the label's camera
+    /// centre, and the colour channel whose Jacobian rows the backward pass gives.
+    PoseJacobian {
+        params: &'s [f32],
+        center: [f32; 3],
+        channel: usize,
+    },
 }
 
 /// Where the colour MLP's appearance embedding comes from.
@@ -194,6 +211,10 @@ struct Shared<'s> {
     /// The pose corrections learn from this pass: the backward pass carries gradients on to
     /// the rays' origins and directions and folds them into the frames' corrections.
     pose_gradients: bool,
+    /// A pose refinement's Jacobian pass for this colour channel: the backward pass starts
+    /// from the channel's robustly weighted colour instead of the loss, and each ray's row
+    /// goes into the chunk's normal equations.
+    jacobian_channel: Option<usize>,
     /// The host's clock, for the chunks' stage times (feature `profile`).
     timer: Timer,
 }
@@ -261,14 +282,15 @@ impl<'a> Trainer<'a> {
 
     /// The read-only view of the model the chunks work with during `pass`.
     fn shared<'s>(&'s self, pass: Pass<'s>) -> Shared<'s> {
+        let dim = self.config.embedding_dim as usize;
         let fit_pose = match pass {
             Pass::FitView {
                 params,
                 center,
                 align_pose: true,
                 ..
-            } => {
-                let dim = self.config.embedding_dim as usize;
+            }
+            | Pass::PoseJacobian { params, center, .. } => {
                 let pose = core::array::from_fn(|i| params.get(dim + i).copied().unwrap_or(0.0));
                 Some((pose, center))
             }
@@ -277,8 +299,10 @@ impl<'a> Trainer<'a> {
         let (embedding, draw_counter) = match pass {
             Pass::Train => (Embedding::PerFrame(&*self.frame_params), self.state.step),
             Pass::FitView { params, step, .. } => {
-                let dim = self.config.embedding_dim as usize;
                 (Embedding::Fixed(params.get(..dim).unwrap_or(&[])), step)
+            }
+            Pass::PoseJacobian { params, .. } => {
+                (Embedding::Fixed(params.get(..dim).unwrap_or(&[])), 0)
             }
             Pass::Render { embedding } => (Embedding::Fixed(embedding), 0),
             Pass::Occupancy => (Embedding::Fixed(&[]), self.state.refreshes),
@@ -304,12 +328,18 @@ impl<'a> Trainer<'a> {
             frame_meta: self.frames.meta,
             embedding,
             draw_counter,
-            jitter: !matches!(pass, Pass::Render { .. }),
-            fitting_view: matches!(pass, Pass::FitView { .. }),
+            // A refinement samples each ray at fixed places, so that its evaluations at
+            // nearby poses differ only by the poses.
+            jitter: !matches!(pass, Pass::Render { .. } | Pass::PoseJacobian { .. }),
+            fitting_view: matches!(pass, Pass::FitView { .. } | Pass::PoseJacobian { .. }),
             fit_pose,
             pose_gradients: match pass {
                 Pass::Train => self.config.pose_learns_at(self.state.step),
                 _ => fit_pose.is_some(),
+            },
+            jacobian_channel: match pass {
+                Pass::PoseJacobian { channel, .. } => Some(channel),
+                _ => None,
             },
             timer: self.profile.timer,
         }

@@ -92,7 +92,8 @@ impl<'a> Trainer<'a> {
         self.profile
             .serial(&mut laps, Bucket::Train, Stage::Reduction);
 
-        let c = &self.config;
+        let config = self.config;
+        let c = &config;
         let lr = optim::learning_rate(c, self.state.step);
         let adam = if finite {
             self.state.updates += 1;
@@ -105,11 +106,27 @@ impl<'a> Trainer<'a> {
         let Some(first) = self.chunks.first_mut() else {
             return report;
         };
+        let pose_learns = adam.is_some() && c.pose_learns_at(self.state.step);
+        if pose_learns {
+            self.state.pose_updates += 1;
+            let grads = core::mem::take(&mut first.frame_grads);
+            self.add_pose_prior_gradients(grads, report.mse);
+            let Some(first) = self.chunks.first_mut() else {
+                return report;
+            };
+            first.frame_grads = grads;
+        }
+        let Some(first) = self.chunks.first_mut() else {
+            return report;
+        };
         if let Some(adam) = &adam {
             adam.apply(self.mlp, first.mlp_grads, self.mlp_m, self.mlp_v);
             let n = c.frame_params();
             let dim = c.embedding_dim as usize;
-            let pose_adam = AdamStep::new(c, lr * c.pose_lr_factor, self.state.updates);
+            // The pose block's own schedule and time step: its moments start at zero when it
+            // starts learning, so its bias correction counts from there.
+            let pose_lr = optim::pose_learning_rate(c, self.state.step);
+            let pose_adam = AdamStep::new(c, pose_lr, self.state.pose_updates);
             for i in 0..self.frames.len() {
                 let Some(slot) = self.frames.occupied_slot(i) else {
                     continue;
@@ -122,7 +139,7 @@ impl<'a> Trainer<'a> {
                     &mut self.frame_m[emb.clone()],
                     &mut self.frame_v[emb],
                 );
-                if c.pose_learns_at(self.state.step) {
+                if pose_learns {
                     pose_adam.apply(
                         &mut self.frame_params[pose.clone()],
                         &first.frame_grads[pose.clone()],
@@ -132,6 +149,12 @@ impl<'a> Trainer<'a> {
                 }
             }
         }
+        if pose_learns {
+            self.fix_pose_gauge();
+        }
+        let Some(first) = self.chunks.first_mut() else {
+            return report;
+        };
         first.mlp_grads.fill(0.0);
         first.frame_grads.fill(0.0);
         let mut updates = TexelUpdate::parts(

@@ -78,16 +78,7 @@ fn view_fit_gradients_match_finite_differences() {
         let mut arena = [0u8; 1 << 20];
         let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
         put_test_frame(&mut trainer);
-        let camera = test_camera();
-        let pose = Pose {
-            rotation: Mat3::from_rotation_y(-0.2) * Mat3::from_rotation_x(0.35),
-            center: Vec3::new(-0.1, 0.2, 0.1),
-        };
-        let mut rng = rng::Rng::new(5);
-        let mut pixels = [0u8; 8 * 8 * 3];
-        for p in pixels.iter_mut() {
-            *p = (rng.uniform() * 255.0) as u8;
-        }
+        let (camera, pose, pixels) = test_view();
         let view = (&camera, &pose, &pixels[..]);
         let start = [0.2, -0.1, 0.3, 0.05, 0.01, -0.02, 0.015, 0.02, -0.01, 0.03];
         let mut laps = trainer.profile.laps();
@@ -126,6 +117,353 @@ fn view_fit_gradients_match_finite_differences() {
                 analytic[i]
             );
         }
+    }
+}
+
+/// Train the small field on the test frame (slot 0) for 100 steps, its pose held.
+fn learn_the_test_frame(trainer: &mut Trainer<'_>) {
+    let correction = trainer.config.pose_correction;
+    trainer.config.pose_correction = false;
+    for _ in 0..100 {
+        trainer.step(&Sequential).unwrap();
+    }
+    trainer.config.pose_correction = correction;
+}
+
+/// The camera and pose of the test frame (`put_test_frame`).
+fn test_frame_pose() -> (Camera, Pose) {
+    let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
+    let pose = Pose {
+        rotation,
+        center: Vec3::new(0.2, -0.1, 0.3),
+    };
+    (test_camera(), pose)
+}
+
+/// A held-out view of the small field: camera, pose and random pixels.
+fn test_view() -> (Camera, Pose, [u8; 8 * 8 * 3]) {
+    let pose = Pose {
+        rotation: Mat3::from_rotation_y(-0.2) * Mat3::from_rotation_x(0.35),
+        center: Vec3::new(-0.1, 0.2, 0.1),
+    };
+    let mut rng = rng::Rng::new(5);
+    let mut pixels = [0u8; 8 * 8 * 3];
+    for p in pixels.iter_mut() {
+        *p = (rng.uniform() * 255.0) as u8;
+    }
+    (test_camera(), pose, pixels)
+}
+
+/// A pose refinement's normal equations against finite differences of its cost, for both
+/// pivots: `J^T W r` is the gradient of the Huber cost, and where the view is the field's
+/// own render (residuals of a quantisation step only), `J^T W J` is the cost's curvature
+/// along every direction (the second differences cancel the first-order term).
+#[test]
+fn the_refinement_normal_equations_match_finite_differences() {
+    for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
+        let mut config = small_config();
+        config.pose_pivot = pivot;
+        config.pose_refine_rays = 32;
+        let plan = MemoryPlan::new(&config);
+        let mut arena = [0u8; 1 << 20];
+        let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+        put_test_frame(&mut trainer);
+        let (camera, pose, random) = test_view();
+        let embedding = [0.05, 0.01, -0.02, 0.015];
+        let params = [0.05, 0.01, -0.02, 0.015, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        // Gradient: random pixels, a correction away from zero.
+        let view = View::Image {
+            camera: &camera,
+            pose: &pose,
+            pixels: &random,
+            columns: (0, 8),
+        };
+        let x = [0.02, -0.01, 0.03, 0.01, -0.02, 0.015];
+        let system = trainer.pose_system(&Sequential, view, &params, &x, (32, RaySet::Fit));
+        assert!(system.rows == 3 * 32 && system.weights > 0.0);
+        for k in 0..6 {
+            let h = if k < 3 { 3e-3 } else { 1e-3 };
+            let mut at = |delta: f32| {
+                let mut y = x;
+                y[k] += delta;
+                trainer
+                    .pose_system(&Sequential, view, &params, &y, (32, RaySet::Fit))
+                    .cost as f64
+            };
+            let numeric = ((at(h) - at(-h)) / (2.0 * h as f64)) as f32;
+            let analytic = system.jtr[k];
+            let scale = numeric.abs().max(analytic.abs()).max(1e-4);
+            assert!(
+                (analytic - numeric).abs() / scale < 0.05,
+                "{pivot:?}, J^T W r [{k}]: {analytic} vs {numeric}"
+            );
+        }
+        // Curvature: the view rendered by the field at the label, once the field has
+        // learnt the test frame's random pixels (a contrasty field, so that the pose moves
+        // the render by more than the pixels' quantisation).
+        learn_the_test_frame(&mut trainer);
+        let (_, pose) = test_frame_pose();
+        let mut image = [0.0f32; 8 * 8 * 3];
+        trainer
+            .render(&Sequential, &camera, &pose, &embedding, &mut image)
+            .unwrap();
+        let own = image.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+        let view = View::Image {
+            camera: &camera,
+            pose: &pose,
+            pixels: &own,
+            columns: (0, 8),
+        };
+        let zero = [0.0f32; 6];
+        let system = trainer.pose_system(&Sequential, view, &params, &zero, (32, RaySet::Fit));
+        let cost = |trainer: &mut Trainer<'_>, d: [f32; 6]| {
+            trainer
+                .pose_system(&Sequential, view, &params, &d, (32, RaySet::Fit))
+                .cost as f64
+        };
+        let c0 = cost(&mut trainer, zero);
+        for (k, l) in [
+            (0, 0),
+            (1, 1),
+            (2, 2),
+            (3, 3),
+            (4, 4),
+            (5, 5),
+            (0, 4),
+            (1, 3),
+            (2, 5),
+        ] {
+            let h = 4e-3f32;
+            let mut d = [0.0f32; 6];
+            d[k] += h;
+            d[l] += h;
+            let plus = cost(&mut trainer, d);
+            let minus = cost(&mut trainer, d.map(|v| -v));
+            let numeric = (plus + minus - 2.0 * c0) / (h as f64 * h as f64);
+            // d^T (J^T W J) d / h^2 with d = h (e_k + e_l).
+            let analytic = (system.jtj[k][k] + system.jtj[l][l] + 2.0 * system.jtj[k][l]) as f64;
+            let scale = numeric.abs().max(analytic.abs()).max(1e-3);
+            assert!(
+                (analytic - numeric).abs() / scale < 0.1,
+                "{pivot:?}, J^T W J along e{k} + e{l}: {analytic} vs {numeric}"
+            );
+        }
+    }
+}
+
+/// The refinement finds a pose the labels missed, and the labels' prior holds it back: the
+/// view is the field's render at a corrected pose; refined from its label without a prior,
+/// the correction comes back to within a tenth of itself, and its uncertainty is finite;
+/// under a prior of a thousandth of the correction's size it stays at the label, and the
+/// uncertainty stays within the prior's.
+#[test]
+fn the_refinement_recovers_a_pose_and_the_prior_pulls_it_to_the_label() {
+    let mut config = small_config();
+    config.pose_pivot = PosePivot::TargetOrigin;
+    config.pose_refine_rays = 32;
+    config.pose_refine_iterations = 8;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    put_test_frame(&mut trainer);
+    learn_the_test_frame(&mut trainer);
+    let (camera, label) = test_frame_pose();
+    let embedding = [0.05, 0.01, -0.02, 0.015];
+    let truth = [0.01, -0.005, 0.0, 0.004, -0.003, 0.002];
+    let moved = PoseCorrection::from_params(&truth, trainer.length_unit)
+        .apply(&label, config.pose_pivot_point());
+    let mut image = [0.0f32; 8 * 8 * 3];
+    trainer
+        .render(&Sequential, &camera, &moved, &embedding, &mut image)
+        .unwrap();
+    let pixels = image.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+    let refine = |trainer: &mut Trainer<'_>| {
+        let mut params = [0.0f32; 10];
+        params[..4].copy_from_slice(&embedding);
+        let fit = trainer.refine_image_pose(
+            &Sequential,
+            (&camera, &label, &pixels),
+            (0, 8),
+            &mut params,
+            8,
+        );
+        (params, fit)
+    };
+    let (free, fit) = refine(&mut trainer);
+    let error: f32 = (0..6)
+        .map(|i| (free[4 + i] - truth[i]).powi(2))
+        .sum::<f32>()
+        .sqrt();
+    let size: f32 = truth.iter().map(|v| v * v).sum::<f32>().sqrt();
+    assert!(
+        error < 0.5 * size,
+        "refined {:?}, truth {truth:?}, {fit:?}",
+        &free[4..]
+    );
+    assert!(fit.steps_taken > 0 && fit.rms_after < fit.rms_before);
+    assert!(fit.rotation_sigma_deg.is_finite() && fit.position_sigma.is_finite());
+    for i in 0..6 {
+        let sigma = fit.covariance[i][i].sqrt();
+        assert!(
+            (free[4 + i] - truth[i]).abs() < 3.0 * sigma,
+            "parameter {i}: {fit:?}"
+        );
+    }
+    trainer.config.pose_prior_rotation_deg = 1e-3 * 2.0 * 0.005f32.to_degrees();
+    trainer.config.pose_prior_position = 1e-3 * 0.01;
+    let (held, fit) = refine(&mut trainer);
+    let moved: f32 = held[4..].iter().map(|v| v * v).sum::<f32>().sqrt();
+    assert!(moved < 0.01 * size, "held {:?}", &held[4..]);
+    // The stated attitude noise is the angle's RMS; the label's translation is u itself
+    // about the target's origin.
+    assert!(fit.rotation_sigma_deg <= trainer.config.pose_prior_rotation_deg * 1.001);
+    for i in 0..3 {
+        let sigma = trainer.length_unit * fit.covariance[i][i].sqrt();
+        assert!(
+            sigma <= trainer.config.pose_prior_position * 1.001,
+            "{fit:?}"
+        );
+    }
+}
+
+/// The refinement's uncertainty follows the evidence: the field's own render of a full
+/// view gives a smaller 1-sigma than the same view cut to its two leftmost columns (a target
+/// half out of the image) and than a view from four times as far (a tiny target against the
+/// black sky).
+#[test]
+fn a_tiny_or_cut_target_gets_a_larger_pose_uncertainty_than_a_full_view() {
+    let mut config = small_config();
+    config.pose_pivot = PosePivot::TargetOrigin;
+    config.background = [0.0; 3];
+    config.pose_refine_rays = 32;
+    config.pose_refine_iterations = 2;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    put_test_frame(&mut trainer);
+    learn_the_test_frame(&mut trainer);
+    let (camera, near) = test_frame_pose();
+    // Four times as far along the view axis: the box fills a few pixels.
+    let axis = near.rotation * Vec3::Z;
+    let far = Pose {
+        rotation: near.rotation,
+        center: near.center - axis * 6.0,
+    };
+    let embedding = [0.05, 0.01, -0.02, 0.015];
+    let mut fit = |pose: &Pose, columns: (u32, u32)| {
+        let mut image = [0.0f32; 8 * 8 * 3];
+        trainer
+            .render(&Sequential, &camera, pose, &embedding, &mut image)
+            .unwrap();
+        let pixels = image.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
+        let mut params = [0.0f32; 10];
+        params[..4].copy_from_slice(&embedding);
+        let view = (&camera, pose, &pixels[..]);
+        trainer.refine_image_pose(&Sequential, view, columns, &mut params, 2)
+    };
+    let full = fit(&near, (0, 8));
+    let cut = fit(&near, (0, 2));
+    let tiny = fit(&far, (0, 8));
+    for (name, other) in [("cut", cut), ("tiny", tiny)] {
+        assert!(
+            other.rotation_sigma_deg > full.rotation_sigma_deg
+                && other.position_sigma > full.position_sigma,
+            "{name}: {other:?} vs full {full:?}"
+        );
+    }
+}
+
+/// The gauge: the pose corrections' common motion is removed (about a pivot, their mean;
+/// about each camera, also the centres' shift a common turn gives), their differences are
+/// kept, and fixing it twice changes nothing more.
+#[test]
+fn the_gauge_removes_the_common_motion_and_keeps_the_differences() {
+    for pivot in [PosePivot::Camera, PosePivot::TargetOrigin] {
+        let mut config = small_config();
+        config.pose_pivot = pivot;
+        config.max_frames = 3;
+        let plan = MemoryPlan::new(&config);
+        let mut arena = [0u8; 1 << 20];
+        let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+        let (camera, _, pixels) = test_view();
+        for (slot, x) in [0.3f32, -0.2, 0.5].into_iter().enumerate() {
+            let pose = Pose {
+                rotation: Mat3::from_rotation_y(x),
+                center: Vec3::new(x, 0.1 * slot as f32, -x),
+            };
+            trainer
+                .set_frame(slot, camera, pose, &pixels, None)
+                .unwrap();
+        }
+        let n = config.frame_params();
+        let corrections = [
+            [0.01f32, 0.02, -0.03, 0.004, -0.002, 0.001],
+            [0.03, -0.01, 0.02, -0.001, 0.003, 0.002],
+            [-0.02, 0.01, 0.01, 0.002, 0.001, -0.004],
+        ];
+        for (slot, x) in corrections.iter().enumerate() {
+            trainer.frame_params[slot * n + 4..(slot + 1) * n].copy_from_slice(x);
+        }
+        let pose = |t: &Trainer<'_>, slot: usize| -> [f32; 6] {
+            core::array::from_fn(|i| t.frame_params[slot * n + 4 + i])
+        };
+        trainer.fix_pose_gauge();
+        let fixed: [[f32; 6]; 3] = core::array::from_fn(|s| pose(&trainer, s));
+        for k in 3..6 {
+            let mean: f32 = fixed.iter().map(|x| x[k]).sum::<f32>() / 3.0;
+            assert!(mean.abs() < 1e-7, "{pivot:?}: mean turn {mean}");
+            // The turns' differences are kept.
+            let kept = (fixed[0][k] - fixed[1][k]) - (corrections[0][k] - corrections[1][k]);
+            assert!(kept.abs() < 1e-7);
+        }
+        for k in 0..3 {
+            let mean: f32 = fixed.iter().map(|x| x[k]).sum::<f32>() / 3.0;
+            match pivot {
+                // About the target the common translation is the mean.
+                PosePivot::TargetOrigin => assert!(mean.abs() < 1e-7, "mean shift {mean}"),
+                PosePivot::Camera => {}
+            }
+        }
+        trainer.fix_pose_gauge();
+        for s in 0..3 {
+            let again = pose(&trainer, s);
+            for k in 0..6 {
+                assert!(
+                    (again[k] - fixed[s][k]).abs() < 1e-6,
+                    "{pivot:?}: not idempotent"
+                );
+            }
+        }
+    }
+}
+
+/// The pose corrections' Adam counts its own updates from the warm-up's end: its first
+/// update moves every parameter with a gradient by the pose rate itself (Adam's first step),
+/// which the global update count (steps after the field's start) would shrink.
+#[test]
+fn the_pose_block_counts_its_own_updates_from_its_warm_up() {
+    let mut config = small_config();
+    config.pose_warmup_steps = 5;
+    config.max_frames = 1;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    put_test_frame(&mut trainer);
+    for _ in 0..5 {
+        trainer.step(&Sequential).unwrap();
+    }
+    assert_eq!(trainer.state.pose_updates, 0);
+    let before: [f32; 6] = core::array::from_fn(|i| trainer.frame_params[4 + i]);
+    assert_eq!(before, [0.0; 6]);
+    let rate = optim::pose_learning_rate(&config, 5);
+    trainer.step(&Sequential).unwrap();
+    assert_eq!(trainer.state.pose_updates, 1);
+    for i in 0..6 {
+        let moved = trainer.frame_params[4 + i].abs();
+        assert!(
+            (moved - rate).abs() < 1e-3 * rate,
+            "parameter {i} moved {moved}, the rate is {rate}"
+        );
     }
 }
 
@@ -256,12 +594,7 @@ fn test_camera() -> Camera {
 
 /// One 8x8 frame of random pixels in slot 0, seen from inside the box.
 pub(super) fn put_test_frame(trainer: &mut Trainer<'_>) {
-    let camera = test_camera();
-    let rotation = Mat3::from_rotation_y(0.4) * Mat3::from_rotation_x(-0.3);
-    let pose = Pose {
-        rotation,
-        center: Vec3::new(0.2, -0.1, 0.3),
-    };
+    let (camera, pose) = test_frame_pose();
     let mut rng = rng::Rng::new(11);
     let mut pixels = [0u8; 8 * 8 * 3];
     for p in pixels.iter_mut() {
