@@ -201,9 +201,9 @@ pub fn load_frames<'f>(
 }
 
 /// Refine every training frame's pose correction with the field frozen
-/// (`Trainer::refine_pose`, slot by slot): the last stage of a training run with pose
-/// correction. Returns each slot's fit, in slot order (none without pose correction or
-/// refinement iterations).
+/// (`Trainer::refine_pose`, slot by slot; with `pose_refine_iterations = 0` only their
+/// uncertainty): the last stage of a training run with pose correction. Returns each slot's
+/// fit, in slot order (none without pose correction).
 pub fn refine_poses<E: Executor>(trainer: &mut Trainer<'_>, executor: &E) -> Result<Vec<PoseFit>> {
     let config = *trainer.config();
     if !config.pose_correction {
