@@ -67,16 +67,15 @@ impl<'a> Trainer<'a> {
         let (mut m, mut v) = ([0.0f32; MOST], [0.0f32; MOST]);
         let mut mse = 0.0;
         // With alignment, the pose follows the loss's gradient with the embedding (Adam's
-        // small steps reach poses a Gauss-Newton step from the label would overshoot), and
-        // the refinement training frames get finishes it.
+        // small steps reach poses a Gauss-Newton step from the label would overshoot); the
+        // refinement, where the config asks for its steps, finishes it.
         for step in 0..steps {
-            let learn_pose = align_pose;
             let mut grad = [0.0f32; MOST];
             let squared_error = self.fit_pass(
                 executor,
                 (camera, pose, pixels),
                 (x0, x1),
-                (step, learn_pose),
+                (step, align_pose),
                 params,
                 &mut grad[..n],
                 &mut laps,
@@ -92,7 +91,7 @@ impl<'a> Trainer<'a> {
                 &mut m[..dim],
                 &mut v[..dim],
             );
-            if learn_pose {
+            if align_pose {
                 let adam = AdamStep::new(&c, FIT_LEARNING_RATE * c.pose_lr_factor, step + 1);
                 adam.apply(
                     &mut params[dim..n],

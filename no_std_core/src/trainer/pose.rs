@@ -116,7 +116,7 @@ pub(super) enum View<'v> {
 /// How many rays' worth of residuals carry the evidence of one independent observation: a
 /// field's errors are smooth, so neighbouring residuals are alike, and counting every ray as
 /// independent would make the evidence (and the reported certainty) this many times too
-/// strong. Measured on simulated sets with exact poses (the README's pose-noise sweep): with
+/// strong. Measured on simulated sets with exact poses (docs/pose-correction.md): with
 /// every ray counted, the true errors were about six times the stated sigma.
 pub const RESIDUAL_CORRELATION: f32 = 32.0;
 
@@ -181,7 +181,8 @@ impl<'a> Trainer<'a> {
     /// the refinement `pose_refine_rays` rays of `RESIDUAL_CORRELATION` times the colour
     /// noise, so the prior's gradient `P^T P x` enters scaled by
     /// `2 noise / (3 frames pose_refine_rays)` (with `noise = mse * RESIDUAL_CORRELATION`).
-    pub(super) fn add_pose_prior_gradients(&mut self, grads: &mut [f32], mse: f32) {
+    /// The gradients are the first chunk's, where the step has summed them.
+    pub(super) fn add_pose_prior_gradients(&mut self, mse: f32) {
         let c = self.config;
         let count = self.frames.len();
         if (c.pose_prior_rotation_deg <= 0.0 && c.pose_prior_position <= 0.0) || count == 0 {
@@ -201,7 +202,13 @@ impl<'a> Trainer<'a> {
             let x: [f32; POSE_PARAMS] =
                 core::array::from_fn(|k| self.frame_params[slot * n + dim + k]);
             let pull = mul_vec(&information, &x);
-            for (g, p) in grads[slot * n + dim..(slot + 1) * n].iter_mut().zip(pull) {
+            let Some(first) = self.chunks.first_mut() else {
+                return;
+            };
+            for (g, p) in first.frame_grads[slot * n + dim..(slot + 1) * n]
+                .iter_mut()
+                .zip(pull)
+            {
                 *g += scale * p;
             }
         }

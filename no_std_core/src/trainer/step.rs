@@ -103,18 +103,10 @@ impl<'a> Trainer<'a> {
             report.skipped = true;
             None
         };
-        let Some(first) = self.chunks.first_mut() else {
-            return report;
-        };
         let pose_learns = adam.is_some() && c.pose_learns_at(self.state.step);
         if pose_learns {
             self.state.pose_updates += 1;
-            let grads = core::mem::take(&mut first.frame_grads);
-            self.add_pose_prior_gradients(grads, report.mse);
-            let Some(first) = self.chunks.first_mut() else {
-                return report;
-            };
-            first.frame_grads = grads;
+            self.add_pose_prior_gradients(report.mse);
         }
         let Some(first) = self.chunks.first_mut() else {
             return report;
@@ -149,12 +141,6 @@ impl<'a> Trainer<'a> {
                 }
             }
         }
-        if pose_learns {
-            self.fix_pose_gauge();
-        }
-        let Some(first) = self.chunks.first_mut() else {
-            return report;
-        };
         first.mlp_grads.fill(0.0);
         first.frame_grads.fill(0.0);
         let mut updates = TexelUpdate::parts(
@@ -171,6 +157,10 @@ impl<'a> Trainer<'a> {
         executor.for_each(&mut updates, |part| {
             part.apply(adam.as_ref(), f, seed, step)
         });
+        drop(updates);
+        if pose_learns {
+            self.fix_pose_gauge();
+        }
         self.profile.serial(&mut laps, Bucket::Train, Stage::Adam);
         report
     }
