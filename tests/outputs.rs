@@ -229,3 +229,105 @@ fn export_writes_meshes_and_points_that_read_back_and_refuses_bad_values() {
     assert!(!ok && text.contains("line 1"), "{text}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A run folder remembers its data (issue 40): after `train --data D --out R`, `eval`,
+/// `render`, `export` and `train --resume` take `--run R` alone, and data flags that disagree
+/// with the run are refused with the field named, nothing written.
+#[test]
+fn a_run_folder_remembers_its_data_for_every_command_that_reads_it() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let dir = temp_dir("run-folder");
+    let data = dir.join("data");
+    let run = dir.join("run");
+    let run_str = run.to_str().unwrap();
+    let (ok, text) = cli(
+        "simulate --scene lightbox --frames 16 --size 40 --out",
+        &[data.to_str().unwrap()],
+    );
+    assert!(ok, "{text}");
+    let (ok, text) = cli(
+        "train --preset default --size 40 --holdout 4 --steps 60 --stop-after 30 --fit-steps 0 --data",
+        &[data.to_str().unwrap(), "--out", run_str],
+    );
+    assert!(ok, "{text}");
+    let record: toml::Table =
+        toml::from_str(&std::fs::read_to_string(run.join("run.toml")).unwrap()).unwrap();
+    let settings = record["data"].as_table().unwrap();
+    assert_eq!(settings["size"].as_integer(), Some(40), "{record}");
+    assert_eq!(settings["holdout"].as_integer(), Some(4), "{record}");
+    assert!(
+        Path::new(settings["data"].as_str().unwrap()).is_absolute(),
+        "{record}"
+    );
+
+    // Continued without a data flag: the run's data, size and hold-out.
+    let (ok, text) = cli("train --fit-steps 0 --resume --run", &[run_str]);
+    assert!(ok, "{text}");
+    assert!(text.contains("resuming at step 30 of 60"), "{text}");
+    assert!(text.contains("held-out views"), "{text}");
+    let trained_psnr = mean_psnr(&text);
+
+    let (ok, text) = cli("eval --fit-steps 0 --run", &[run_str]);
+    assert!(ok, "{text}");
+    assert_eq!(mean_psnr(&text), trained_psnr, "{text}");
+    let (ok, text) = cli("render --orbit 3 --run", &[run_str]);
+    assert!(ok, "{text}");
+    assert!(run.join("render/orbit.gif").is_file(), "{text}");
+    // The short run's densities vary from one build to the next: a threshold inside the
+    // range the refusal names.
+    let (ok, text) = cli("export mesh --resolution 24 --run", &[run_str]);
+    let (ok, text) = match text.split_once("densities in the box run from ") {
+        Some((_, range)) if !ok => {
+            let bounds: Vec<f64> = range
+                .split(';')
+                .next()
+                .unwrap()
+                .split(" to ")
+                .map(|v| v.trim().parse().unwrap())
+                .collect();
+            let middle = (bounds[0] * bounds[1]).sqrt().to_string();
+            cli(
+                "export mesh --resolution 24 --run",
+                &[run_str, "--threshold", &middle],
+            )
+        }
+        _ => (ok, text),
+    };
+    assert!(ok, "{text}");
+    assert!(run.join("mesh.ply").is_file(), "{text}");
+
+    // Other data, another size or masks off: refused, naming run.toml and the field.
+    let other = dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    for (more, field) in [
+        (vec!["--data", other.to_str().unwrap()], "data.data"),
+        (vec!["--size", "32"], "data.size"),
+        (vec!["--holdout", "3"], "data.holdout"),
+        (vec!["--no-masks"], "data.masks"),
+    ] {
+        let metrics = dir.join("metrics");
+        let mut args = vec!["--run", run_str, "--metrics", metrics.to_str().unwrap()];
+        args.extend_from_slice(&more);
+        let (ok, text) = cli("eval", &args);
+        assert!(!ok, "{more:?}: {text}");
+        assert!(
+            text.contains("run.toml") && text.contains(field) && text.contains("the run"),
+            "{more:?}: {text}"
+        );
+        assert!(!metrics.join("metrics.json").exists(), "{more:?}");
+    }
+    let (ok, text) = cli("eval --run", &[dir.join("nothing").to_str().unwrap()]);
+    assert!(!ok && text.contains("run.toml"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The mean held-out PSNR a `train` or `eval` printed.
+fn mean_psnr(text: &str) -> String {
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("mean PSNR over"))
+        .unwrap_or_else(|| panic!("no mean PSNR in {text}"));
+    line.rsplit(": ").next().unwrap().to_string()
+}

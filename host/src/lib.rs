@@ -11,6 +11,7 @@ pub mod machine;
 pub mod memory;
 pub mod metrics;
 pub mod orbit;
+pub mod pipeline;
 pub mod presets;
 #[cfg(feature = "profile")]
 pub mod profile;

@@ -212,7 +212,11 @@ pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Ve
             (set.dataset, truth)
         }
         _ => (
-            formats::open(path, Some(size as u32), super::NERF_BACKGROUND)?,
+            formats::open(
+                path,
+                Some(size as u32),
+                orbit_nerf_host::pipeline::NERF_BACKGROUND,
+            )?,
             None,
         ),
     };

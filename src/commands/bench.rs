@@ -1,14 +1,12 @@
 //! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed, and
 //! with `--profile` where a step's and a rendered view's time goes, stage by stage.
 
-use super::{
-    CliResult, DataArgs, Fallible, choose_box, config_for_data, open_dataset, preset_parser,
-    with_trainer,
-};
+use super::{CliResult, Fallible, choose_box, config_for_data, open_dataset, preset_parser};
 use clap::Args;
 use orbit_nerf_core::Trainer;
 use orbit_nerf_host::dataset::Dataset;
 use orbit_nerf_host::machine;
+use orbit_nerf_host::pipeline::{self, DataSettings, SplitData};
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -76,13 +74,16 @@ pub fn run(args: &BenchArgs) -> CliResult {
         }
     );
     let mut base = config_for_data(args.preset.as_deref(), &args.data, args.config.as_deref())?;
-    let data = DataArgs {
-        data: args.data.clone(),
+    let settings = DataSettings {
         size: args.size,
-        holdout: 8,
-        no_masks: false,
+        ..DataSettings::new(&args.data)
     };
-    let (mut dataset, train_idx, test_idx) = open_dataset(&data)?;
+    let SplitData {
+        mut dataset,
+        train: train_idx,
+        test: test_idx,
+        ..
+    } = open_dataset(&settings, None)?;
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
     base.steps = args.warmup + args.steps;
     base.warmup_steps = base.warmup_steps.min(base.steps);
@@ -110,7 +111,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     let mut report = String::new();
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
-        with_trainer(config, None, &frames, |trainer| {
+        pipeline::with_trainer(config, None, &frames, |trainer| -> Fallible<()> {
             for _ in 0..args.warmup {
                 trainer.step(&executor)?;
             }

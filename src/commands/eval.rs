@@ -1,21 +1,20 @@
 //! `orbit-nerf eval`: score held-out views of a dataset with a checkpoint.
 
 use super::{
-    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, MAX_THREADS, check_checkpoint_memory,
-    check_dataset_memory, evaluate_checkpoint, open_dataset, print_scores,
+    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, MAX_THREADS, RunArgs, evaluate_checkpoint,
+    open_dataset, print_scores,
 };
 use clap::Args;
 use orbit_nerf_host::report::{Figures, ModelFigures};
-use orbit_nerf_host::{train, values};
+use orbit_nerf_host::{pipeline, train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct EvalArgs {
     #[command(flatten)]
+    model: RunArgs,
+    #[command(flatten)]
     data: DataArgs,
-    /// The checkpoint to score (checkpoint.onrf of a `train` run).
-    #[arg(long)]
-    checkpoint: PathBuf,
     /// Write renders and ground truth of the held-out views here.
     #[arg(long)]
     renders: Option<PathBuf>,
@@ -43,21 +42,21 @@ pub fn run(args: &EvalArgs) -> CliResult {
     for dir in [&args.metrics, &args.renders].into_iter().flatten() {
         orbit_nerf_host::io::check_output_folder(dir)?;
     }
-    check_checkpoint_memory(&args.checkpoint, args.memory_limit)?;
-    check_dataset_memory(&args.data, args.memory_limit)?;
-    let (dataset, _, test_idx) = open_dataset(&args.data)?;
+    let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "score")?;
+    pipeline::check_checkpoint_memory(&checkpoint, args.memory_limit)?;
+    let data = open_dataset(&settings, args.memory_limit)?;
     let scores = evaluate_checkpoint(
-        &args.checkpoint,
+        &checkpoint,
         args.threads,
-        &dataset,
-        &test_idx,
+        &data.dataset,
+        &data.test,
         (args.fit_steps, args.align_poses),
         args.renders.as_deref(),
     )?;
     let mean = print_scores(&scores);
     if let Some(dir) = args.metrics.as_ref().or(args.renders.as_ref()) {
         let model = ModelFigures {
-            name: args.checkpoint.display().to_string(),
+            name: checkpoint.display().to_string(),
             mean,
             views: train::view_figures(&scores),
             training: None,

@@ -1,12 +1,12 @@
 //! `orbit-nerf export`: the trained field's geometry as files other tools read: the surface
 //! of its density as a coloured mesh (PLY or OBJ), or as a coloured point cloud (PLY).
 
-use super::{CliResult, with_checkpoint};
+use super::{CliResult, Fallible};
 use clap::{Args, Subcommand};
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::geometry::{self, Mesh, SurfaceOptions, files};
 use orbit_nerf_host::train::RayonExecutor;
-use orbit_nerf_host::{memory, values};
+use orbit_nerf_host::{memory, pipeline, values};
 use std::path::{Path, PathBuf};
 
 /// Side of the --preview picture in pixels.
@@ -25,12 +25,20 @@ pub enum ExportCommand {
 
 #[derive(Args)]
 pub struct ExportArgs {
-    /// Checkpoint written by `train`, `stream` or `ablate`.
+    /// A `train` run folder: its checkpoint.onrf.
+    #[arg(
+        long,
+        conflicts_with = "checkpoint",
+        required_unless_present = "checkpoint"
+    )]
+    run: Option<PathBuf>,
+    /// A checkpoint written by `train`, `stream` or `ablate`, instead of --run.
     #[arg(long)]
-    checkpoint: PathBuf,
-    /// Output file (.ply, or .obj for a mesh).
-    #[arg(long)]
-    out: PathBuf,
+    checkpoint: Option<PathBuf>,
+    /// Output file (.ply, or .obj for a mesh) [default with --run: RUN/mesh.ply or
+    /// RUN/points.ply].
+    #[arg(long, required_unless_present = "run")]
+    out: Option<PathBuf>,
     /// Grid samples along the longest side of the scene box (8 to 2048; cubic voxels).
     #[arg(long, default_value_t = geometry::extract::DEFAULT_RESOLUTION,
           value_parser = parse_resolution, allow_hyphen_values = true)]
@@ -123,13 +131,30 @@ pub fn run(command: &ExportCommand) -> CliResult {
         ExportCommand::Mesh(args) => (args, false),
         ExportCommand::Points(args) => (args, true),
     };
-    let format = format_of(&args.out, points)?;
-    for file in std::iter::once(&args.out).chain(&args.preview) {
+    let (checkpoint, out) = match (&args.run, &args.checkpoint) {
+        (Some(run), _) => (
+            run.join(pipeline::CHECKPOINT_FILE),
+            (args.out.clone())
+                .unwrap_or_else(|| run.join(if points { "points.ply" } else { "mesh.ply" })),
+        ),
+        (None, Some(checkpoint)) => (
+            checkpoint.clone(),
+            args.out
+                .clone()
+                .ok_or("--out FILE is needed with --checkpoint")?,
+        ),
+        (None, None) => {
+            return Err("give --run DIR (a `train` run folder) or --checkpoint FILE".into());
+        }
+    };
+    let (checkpoint, out) = (&checkpoint, &out);
+    let format = format_of(out, points)?;
+    for file in std::iter::once(out).chain(&args.preview) {
         if file.exists() && !args.force {
             return Err(format!("{}: already exists; --force replaces it", file.display()).into());
         }
     }
-    if let Some(parent) = args.out.parent() {
+    if let Some(parent) = out.parent() {
         orbit_nerf_host::io::check_output_folder(parent)?;
     }
     let executor = RayonExecutor::new(args.threads)?;
@@ -137,7 +162,7 @@ pub fn run(command: &ExportCommand) -> CliResult {
         resolution: args.resolution,
         threshold: args.threshold,
     };
-    let mesh = with_checkpoint(&args.checkpoint, |trainer| {
+    let mesh = pipeline::with_checkpoint(checkpoint, None, |trainer| -> Fallible<_> {
         let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
         trainer.mean_embedding(&mut embedding);
         println!(
@@ -150,11 +175,11 @@ pub fn run(command: &ExportCommand) -> CliResult {
             &executor,
             &embedding,
             &options,
-            &args.checkpoint,
+            checkpoint,
             memory::limit_or_default(args.memory_limit),
         )?)
     })?;
-    write(&args.out, &mesh, format, points)?;
+    write(out, &mesh, format, points)?;
     if let Some(scene) = &args.chamfer_against {
         let truth = super::ablate::true_surface(scene)?;
         let samples = geometry::chamfer::DEFAULT_SAMPLES;
@@ -184,7 +209,7 @@ pub fn run(command: &ExportCommand) -> CliResult {
         } else {
             format!(", {} triangles", mesh.triangles.len())
         },
-        args.out.display()
+        out.display()
     );
     Ok(())
 }

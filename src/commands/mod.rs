@@ -15,41 +15,78 @@ pub mod train;
 
 use clap::Args;
 use indicatif::ProgressStyle;
-use orbit_nerf_core::MemoryPlan;
-use orbit_nerf_core::{Config, Trainer};
-use orbit_nerf_host::dataset::{self, Dataset, Frame};
-use orbit_nerf_host::formats::{self, Format};
+use orbit_nerf_core::Config;
+use orbit_nerf_host::dataset::Dataset;
+use orbit_nerf_host::pipeline::{self, ChosenConfig, DataChoice, DataSettings, SplitData};
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
-use orbit_nerf_host::scene_box::{self, StatedBox};
-use orbit_nerf_host::train::{
-    RayonExecutor, ViewScore, checkpoint_config, config_scene_box, evaluate, load_frames,
-    read_config, restore_checkpoint,
-};
-use orbit_nerf_host::{memory, presets, values};
+use orbit_nerf_host::scene_box;
+use orbit_nerf_host::train::{RayonExecutor, ViewScore, evaluate};
+use orbit_nerf_host::{presets, values};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 pub type Fallible<T> = Result<T, Box<dyn std::error::Error>>;
 pub type CliResult = Fallible<()>;
-/// A dataset with its training and held-out view indices.
-type SplitDataset = (Dataset, Vec<usize>, Vec<usize>);
 
 #[derive(Args, Clone)]
 struct DataArgs {
-    /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT.
+    /// Dataset folder: NeRF-synthetic, nerfstudio or SPEED+/SHIRT (with --run: the run's,
+    /// from its run.toml).
     #[arg(long)]
-    data: PathBuf,
+    data: Option<PathBuf>,
     /// Resize images so the longer side has at most this many pixels, 1 to 65535 (smaller
-    /// images keep their size: never upsampled), for every format.
-    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=65_535))]
-    size: u32,
-    /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view).
-    #[arg(long, default_value_t = 8, value_parser = |text: &str| values::count_in(text, 1..=1_000_000))]
-    holdout: usize,
+    /// images keep their size: never upsampled), for every format [default: 100, or the run's].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65_535))]
+    size: Option<u32>,
+    /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view)
+    /// [default: 8, or the run's].
+    #[arg(long, value_parser = |text: &str| values::count_in(text, 1..=1_000_000))]
+    holdout: Option<usize>,
     /// Keep the sky as recorded: by default, where a frame has a mask, its background pixels
     /// get the background colour for training and scoring (as the paper removes it).
     #[arg(long)]
     no_masks: bool,
+}
+
+impl DataArgs {
+    /// The flags as given (`None` where left out).
+    fn choice(&self) -> DataChoice {
+        DataChoice {
+            data: self.data.clone(),
+            size: self.size,
+            holdout: self.holdout,
+            no_masks: self.no_masks,
+        }
+    }
+}
+
+/// The model a command reads: a `train` run folder (its checkpoint and its data), or a
+/// checkpoint with data flags.
+#[derive(Args, Clone)]
+struct RunArgs {
+    /// A `train` run folder: its checkpoint.onrf, and its data as its run.toml records it
+    /// (no data flag needed; one given must agree with the run).
+    #[arg(long, conflicts_with = "checkpoint")]
+    run: Option<PathBuf>,
+    /// A checkpoint (of `train`, `stream` or `ablate`), with --data, instead of --run.
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+}
+
+impl RunArgs {
+    /// The checkpoint and the data settings (`verb`: what the command does with the run).
+    fn checkpoint_and_data(
+        &self,
+        data: &DataArgs,
+        verb: &str,
+    ) -> Fallible<(PathBuf, DataSettings)> {
+        Ok(pipeline::checkpoint_and_data(
+            self.run.as_deref(),
+            self.checkpoint.as_deref(),
+            &data.choice(),
+            verb,
+        )?)
+    }
 }
 
 #[derive(Args, Clone)]
@@ -106,42 +143,21 @@ fn preset_parser() -> clap::builder::PossibleValuesParser {
 /// Prints one line saying which and why.
 fn preset_config(
     chosen: Option<&str>,
-    default: &str,
+    default: &'static str,
     data: &str,
     file: Option<&Path>,
 ) -> Fallible<Config> {
-    let (name, why) = match chosen {
-        Some(name) => (name, "--preset".to_string()),
-        None => (
-            default,
-            format!(
-                "{data}; --preset to choose another: {}",
-                presets::names().collect::<Vec<_>>().join(", ")
-            ),
-        ),
-    };
-    let preset = presets::find(name).ok_or_else(|| {
-        format!(
-            "--preset {name}: no such preset ({})",
-            presets::names().collect::<Vec<_>>().join(", ")
-        )
-    })?;
-    let config = match file {
-        Some(path) => read_config(path, &preset.config()?)?,
-        None => preset.config()?,
-    };
-    let on_top = file.map_or(String::new(), |path| {
-        format!(", with the fields of {} on top", path.display())
-    });
-    println!("config: preset {name} ({why}){on_top}");
-    Ok(config)
+    let chosen = pipeline::preset_config(chosen, default, data, file)?;
+    println!("{}", chosen.note);
+    Ok(chosen.config)
 }
 
 /// [`preset_config`] for a run on the dataset `data`: the preset for its format, told from the
 /// folder's layout (nothing is read), unless `chosen`.
 fn config_for_data(chosen: Option<&str>, data: &Path, file: Option<&Path>) -> Fallible<Config> {
-    let format = Format::of(data);
-    preset_config(chosen, presets::for_format(format), format.folder(), file)
+    let chosen = pipeline::choose_config(chosen, data, file)?;
+    println!("{}", chosen.note);
+    Ok(chosen.config)
 }
 
 /// A scene box as min and max corners.
@@ -159,19 +175,7 @@ fn choose_box(
     config: Option<&Path>,
     train_idx: &[usize],
 ) -> CliResult {
-    let stated = match (flag, config) {
-        (Some((min, max)), _) => Some(StatedBox {
-            min,
-            max,
-            by: "--scene-box".into(),
-        }),
-        (None, Some(path)) => config_scene_box(path)?.map(|(min, max)| StatedBox {
-            min,
-            max,
-            by: format!("the config file {}", path.display()),
-        }),
-        (None, None) => None,
-    };
+    let stated = pipeline::stated_box(flag, config)?;
     println!(
         "{}",
         scene_box::choose_scene_box(dataset, stated, train_idx)?
@@ -200,42 +204,24 @@ const MAX_FIT_STEPS: i64 = 100_000;
 /// Default steps fitting a held-out view's appearance embedding.
 const FIT_STEPS: u32 = orbit_nerf_host::train::DEFAULT_FIT_STEPS;
 
-/// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (the loader
-/// sets that itself).
-const NERF_BACKGROUND: [f32; 3] = [1.0; 3];
-
-/// Check the memory the dataset's images will take (from their headers) against
-/// `memory_limit` (default: a share of the machine's memory) before they are read.
-fn check_dataset_memory(data: &DataArgs, memory_limit: Option<u64>) -> CliResult {
-    Ok(memory::check_plan(
-        &data.data,
-        &memory::dataset_parts(&data.data, Some(data.size)),
-        memory::limit_or_default(memory_limit),
-    )?)
-}
-
-fn open_dataset(data: &DataArgs) -> Fallible<SplitDataset> {
-    let mut dataset = formats::open(&data.data, Some(data.size), NERF_BACKGROUND)?;
-    if dataset.frames.is_empty() {
-        return Err(format!("{}: no frames", data.data.display()).into());
+/// Read the dataset of `settings` (its memory checked first against `memory_limit`) and
+/// print where masks were applied.
+fn open_dataset(settings: &DataSettings, memory_limit: Option<u64>) -> Fallible<SplitData> {
+    settings.check_memory(memory_limit)?;
+    let data = settings.open()?;
+    if let Some(note) = data.mask_note() {
+        println!("{note}");
     }
-    if !data.no_masks {
-        let masked = dataset.apply_masks();
-        if masked > 0 {
-            println!(
-                "masks applied: background colour where the mask is 0 on {masked} views (--no-masks keeps the sky)"
-            );
-        }
-    }
-    let (train, test) = dataset::split_every(dataset.frames.len(), data.holdout);
-    Ok((dataset, train, test))
+    Ok(data)
 }
 
 /// The model config of a run on `data`: the preset (`--preset`, else the one for the data's
 /// format, told from the folder's layout before the data is read), a `--config` file's fields,
-/// then the flags.
-fn model_config(model: &ModelArgs, data: &Path) -> Fallible<Config> {
-    let mut config = config_for_data(model.preset.as_deref(), data, model.config.as_deref())?;
+/// then the flags. Prints which preset and why.
+fn model_config(model: &ModelArgs, data: &Path) -> Fallible<ChosenConfig> {
+    let mut chosen =
+        pipeline::choose_config(model.preset.as_deref(), data, model.config.as_deref())?;
+    let config = &mut chosen.config;
     if let Some(steps) = model.steps {
         config.steps = steps;
         config.warmup_steps = config.warmup_steps.min(steps);
@@ -249,27 +235,7 @@ fn model_config(model: &ModelArgs, data: &Path) -> Fallible<Config> {
     if let Some(on) = model.pose_correction {
         config.pose_correction = on;
     }
-    Ok(config)
-}
-
-/// A trainer over a fresh arena (checked against `memory_limit`, or a share of the
-/// machine's memory, before it is allocated), with the training frames loaded.
-fn with_trainer<R>(
-    config: Config,
-    memory_limit: Option<u64>,
-    frames: &[&Frame],
-    f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>,
-) -> Fallible<R> {
-    let plan = MemoryPlan::new(&config);
-    memory::check_arena(
-        Path::new("the model"),
-        &plan,
-        memory::limit_or_default(memory_limit),
-    )?;
-    let mut arena = vec![0u8; plan.total];
-    let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
-    load_frames(&mut trainer, frames.iter().copied())?;
-    f(&mut trainer)
+    Ok(chosen)
 }
 
 /// The held-out scores, one line per view and the mean (metrics as `report::score_view`
@@ -311,18 +277,6 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
     mean
 }
 
-/// Check the arena the checkpoint at `path` needs against `memory_limit` (default: a share of
-/// the machine's memory) before its data is read.
-fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> CliResult {
-    let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
-    let plan = MemoryPlan::new(&checkpoint_config(path, &checkpoint)?);
-    Ok(memory::check_arena(
-        path,
-        &plan,
-        memory::limit_or_default(memory_limit),
-    )?)
-}
-
 /// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
 /// fitting each view's embedding (and with `align_poses` its pose correction) for
 /// `fit_steps`; renders go to `renders` when given.
@@ -335,7 +289,7 @@ fn evaluate_checkpoint(
     renders: Option<&Path>,
 ) -> Fallible<Vec<ViewScore>> {
     let executor = RayonExecutor::new(threads)?;
-    with_checkpoint(path, |trainer| {
+    pipeline::with_checkpoint(path, None, |trainer| -> Fallible<_> {
         Ok(evaluate(
             trainer,
             &executor,
@@ -345,16 +299,6 @@ fn evaluate_checkpoint(
             align_poses,
             renders,
         )?)
-    })
-}
-
-/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config).
-fn with_checkpoint<R>(path: &Path, f: impl FnOnce(&mut Trainer<'_>) -> Fallible<R>) -> Fallible<R> {
-    let checkpoint = orbit_nerf_host::checkpoint::load(path)?;
-    let config = checkpoint_config(path, &checkpoint)?;
-    with_trainer(config, None, &[], |trainer| {
-        restore_checkpoint(path, &checkpoint, trainer)?;
-        f(trainer)
     })
 }
 

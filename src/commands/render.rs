@@ -1,13 +1,12 @@
 //! `orbit-nerf render`: render views of a dataset's cameras with a checkpoint to PNG, or new
 //! views (an orbit around the target, or a path file) to PNG frames and an animated GIF.
 
-use super::{
-    CliResult, DataArgs, FIT_STEPS, Fallible, evaluate_checkpoint, open_dataset, with_checkpoint,
-};
+use super::{CliResult, DataArgs, FIT_STEPS, Fallible, RunArgs, evaluate_checkpoint, open_dataset};
 use clap::Args;
 use orbit_nerf_core::Pose;
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::orbit::{self, Surroundings};
+use orbit_nerf_host::pipeline::{self, SplitData};
 use orbit_nerf_host::train::{RayonExecutor, to_rgb8};
 use orbit_nerf_host::{io, values};
 use std::path::{Path, PathBuf};
@@ -15,10 +14,9 @@ use std::path::{Path, PathBuf};
 #[derive(Args)]
 pub struct RenderArgs {
     #[command(flatten)]
+    model: RunArgs,
+    #[command(flatten)]
     data: DataArgs,
-    /// Checkpoint written by `train`, `stream` or `ablate`.
-    #[arg(long)]
-    checkpoint: PathBuf,
     /// Views to render (dataset indices); default: the held-out views.
     #[arg(long, value_delimiter = ',', conflicts_with_all = ["orbit", "path"])]
     views: Vec<usize>,
@@ -42,9 +40,10 @@ pub struct RenderArgs {
     /// Replace orbit frames, GIF and MP4 already in --out.
     #[arg(long)]
     force: bool,
-    /// Output folder: view_NNN.png per dataset view, or the orbit's frames and GIF.
-    #[arg(long, default_value = "runs/render")]
-    out: PathBuf,
+    /// Output folder: view_NNN.png per dataset view, or the orbit's frames and GIF
+    /// [default: RUN/render with --run, else runs/render].
+    #[arg(long)]
+    out: Option<PathBuf>,
     /// Worker threads (results do not depend on it).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -55,6 +54,17 @@ pub struct RenderArgs {
     /// label (as `eval --align-poses`), instead of at its label.
     #[arg(long)]
     align_poses: bool,
+}
+
+impl RenderArgs {
+    /// `--out`, else the run's `render` folder, else `runs/render`.
+    fn out(&self) -> PathBuf {
+        match (&self.out, &self.model.run) {
+            (Some(out), _) => out.clone(),
+            (None, Some(run)) => run.join("render"),
+            (None, None) => PathBuf::from("runs/render"),
+        }
+    }
 }
 
 fn parse_orbit(text: &str) -> Result<usize, String> {
@@ -70,29 +80,31 @@ fn parse_frame_ms(text: &str) -> Result<u32, String> {
 }
 
 pub fn run(args: &RenderArgs) -> CliResult {
+    let out = &args.out();
     if args.orbit.is_some() || args.path.is_some() {
         return new_views(args);
     }
-    let (dataset, _, test_idx) = open_dataset(&args.data)?;
+    let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
+    let data = open_dataset(&settings, None)?;
     let views = if args.views.is_empty() {
-        test_idx
+        data.test
     } else {
         args.views.clone()
     };
     let scores = evaluate_checkpoint(
-        &args.checkpoint,
+        &checkpoint,
         args.threads,
-        &dataset,
+        &data.dataset,
         &views,
         (args.fit_steps, args.align_poses),
-        Some(&args.out),
+        Some(out),
     )?;
     for s in &scores {
         println!(
             "view {:>3}: {:.2} dB -> {}",
             s.index,
             s.metrics.psnr_full,
-            args.out.join(format!("view_{:03}.png", s.index)).display()
+            out.join(format!("view_{:03}.png", s.index)).display()
         );
     }
     Ok(())
@@ -110,12 +122,18 @@ fn outputs(out: &Path, count: usize) -> Vec<PathBuf> {
 
 /// Render an orbit or a path file's cameras with the mean training embedding.
 fn new_views(args: &RenderArgs) -> CliResult {
-    io::check_output_folder(&args.out)?;
-    let (dataset, train_idx, _) = open_dataset(&args.data)?;
+    let out = &args.out();
+    io::check_output_folder(out)?;
+    let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
+    let SplitData {
+        dataset,
+        train: train_idx,
+        ..
+    } = open_dataset(&settings, None)?;
     let camera = dataset.frames[0].camera;
     let training: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
     let executor = RayonExecutor::new(args.threads)?;
-    with_checkpoint(&args.checkpoint, |trainer| {
+    pipeline::with_checkpoint(&checkpoint, None, |trainer| -> Fallible<()> {
         let c = trainer.config();
         let centre = (Vec3::from_array(c.aabb_min) + Vec3::from_array(c.aabb_max)) * 0.5;
         let around = orbit::surroundings(&training, centre).ok_or_else(|| {
@@ -125,7 +143,7 @@ fn new_views(args: &RenderArgs) -> CliResult {
             )
         })?;
         let poses = camera_path(args, &around)?;
-        let files = outputs(&args.out, poses.len());
+        let files = outputs(out, poses.len());
         if let Some(existing) = files.iter().find(|f| f.exists()).filter(|_| !args.force) {
             return Err(format!(
                 "{}: already exists; --force replaces it",
@@ -143,7 +161,7 @@ fn new_views(args: &RenderArgs) -> CliResult {
             if image.iter().any(|v| !v.is_finite()) {
                 return Err(format!(
                     "{}: the render of {} holds non-finite pixels: the checkpoint is broken",
-                    args.checkpoint.display(),
+                    checkpoint.display(),
                     file.display()
                 )
                 .into());
@@ -160,12 +178,7 @@ fn new_views(args: &RenderArgs) -> CliResult {
             around.distance,
             gif.display()
         );
-        encode_mp4(
-            &args.out,
-            poses.len(),
-            args.frame_ms,
-            &files[poses.len() + 1],
-        )
+        encode_mp4(out, poses.len(), args.frame_ms, &files[poses.len() + 1])
     })
 }
 
