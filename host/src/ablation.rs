@@ -268,53 +268,26 @@ impl Experiment<'_> {
         if let Some(progress) = self.progress.filter(|p| p.path.exists()) {
             so_far = resume(progress.path, &config, &mut trainer)?;
         }
+        let mut observer = ExperimentSteps {
+            on_step,
+            score: &|trainer: &mut Trainer<'_>| Ok(score(trainer)?.1),
+            score_at: self.score_at,
+            progress: self.progress,
+            so_far,
+            clock: Instant::now(),
+        };
+        crate::pipeline::train_steps(&mut trainer, &executor, config.steps, &mut observer)
+            .map_err(|e| match e {
+                HostError::Core(reason) => HostError::invalid(&dataset.source, reason),
+                other => other,
+            })?;
         let FiguresSoFar {
             mut train_seconds,
-            mut rays,
-            mut samples,
+            rays,
+            samples,
             mut curve,
-        } = so_far;
-        let mut start = Instant::now();
-        for step in trainer.state().step + 1..=config.steps {
-            let report = trainer
-                .step(&executor)
-                .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
-            rays += report.rays as u64;
-            samples += report.samples as u64;
-            on_step(step, &report);
-            if self.score_at.contains(&step) && step < config.steps {
-                train_seconds += start.elapsed().as_secs_f64();
-                // Scoring reads the field and fits held-out embeddings in scratch buffers:
-                // training goes on from the same state (the sweep test checks the bytes).
-                let (_, metrics) = score(&mut trainer)?;
-                curve.push(CurvePoint {
-                    step,
-                    seconds: train_seconds,
-                    metrics,
-                });
-                start = Instant::now();
-            }
-            if let Some(progress) = self.progress.filter(|_| step < config.steps) {
-                let stop = progress.stop_after == Some(step);
-                if stop || step % progress.every.max(1) == 0 {
-                    train_seconds += start.elapsed().as_secs_f64();
-                    let figures = FiguresSoFar {
-                        train_seconds,
-                        rays,
-                        samples,
-                        curve: curve.clone(),
-                    };
-                    save_progress(progress.path, &trainer, &figures)?;
-                    if stop {
-                        return Err(HostError::Stopped {
-                            progress: progress.path.to_path_buf(),
-                            step,
-                        });
-                    }
-                    start = Instant::now();
-                }
-            }
-        }
+        } = observer.so_far;
+        let start = observer.clock;
         // The poses' refinement with the field frozen is the run's last training stage.
         let refine_start = Instant::now();
         let pose_fits = train::refine_poses(&mut trainer, &executor)?;
@@ -413,6 +386,65 @@ impl Experiment<'_> {
             training,
             surface,
         })
+    }
+}
+
+/// An experiment's observer of its training steps: the caller's `on_step`, the anytime scores
+/// at `score_at` and the progress checkpoints, with the training clock paused while it scores
+/// or saves.
+struct ExperimentSteps<'o, 's> {
+    on_step: &'o mut dyn FnMut(u32, &StepReport),
+    score: &'s dyn Fn(&mut Trainer<'_>) -> Result<ViewMetrics>,
+    score_at: &'o [u32],
+    progress: Option<Progress<'o>>,
+    so_far: FiguresSoFar,
+    /// When the current stretch of training began.
+    clock: Instant,
+}
+
+impl crate::pipeline::Observer for ExperimentSteps<'_, '_> {
+    fn start(&mut self, _: &Trainer<'_>, _: u32) {
+        self.clock = Instant::now();
+    }
+
+    fn step(
+        &mut self,
+        trainer: &mut Trainer<'_>,
+        end: u32,
+        report: &StepReport,
+    ) -> Result<crate::pipeline::Flow> {
+        let step = trainer.state().step;
+        let so_far = &mut self.so_far;
+        so_far.rays += report.rays as u64;
+        so_far.samples += report.samples as u64;
+        (self.on_step)(step, report);
+        if self.score_at.contains(&step) && step < end {
+            so_far.train_seconds += self.clock.elapsed().as_secs_f64();
+            // Scoring reads the field and fits held-out embeddings in scratch buffers:
+            // training goes on from the same state (the sweep test checks the bytes).
+            let metrics = (self.score)(trainer)?;
+            so_far.curve.push(CurvePoint {
+                step,
+                seconds: so_far.train_seconds,
+                metrics,
+            });
+            self.clock = Instant::now();
+        }
+        if let Some(progress) = self.progress.filter(|_| step < end) {
+            let stop = progress.stop_after == Some(step);
+            if stop || step % progress.every.max(1) == 0 {
+                so_far.train_seconds += self.clock.elapsed().as_secs_f64();
+                save_progress(progress.path, trainer, so_far)?;
+                if stop {
+                    return Err(HostError::Stopped {
+                        progress: progress.path.to_path_buf(),
+                        step,
+                    });
+                }
+                self.clock = Instant::now();
+            }
+        }
+        Ok(crate::pipeline::Flow::Continue)
     }
 }
 

@@ -112,33 +112,24 @@ pub fn run(args: &BenchArgs) -> CliResult {
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
         pipeline::with_trainer(config, None, &frames, |trainer| -> Fallible<()> {
-            for _ in 0..args.warmup {
-                trainer.step(&executor)?;
-            }
+            let warm = trainer.state().step + args.warmup;
+            pipeline::train_steps(trainer, &executor, warm, &mut ())?;
             start_profile(trainer, args.profile);
-            let (mut rays, mut samples, mut marched) = (0u64, 0u64, 0u64);
-            let start = Instant::now();
-            for _ in 0..args.steps {
-                let r = trainer.step(&executor)?;
-                rays += r.rays as u64;
-                samples += r.samples as u64;
-                marched += r.samples_marched as u64;
-            }
-            let elapsed = start.elapsed();
-            let seconds = elapsed.as_secs_f64();
+            let end = warm + args.steps;
+            let t = pipeline::train_steps(trainer, &executor, end, &mut ())?;
             println!(
                 "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
-                samples as f64 / seconds,
-                rays as f64 / seconds,
-                samples as f64 / rays.max(1) as f64,
-                marched as f64 / rays.max(1) as f64,
-                1000.0 * seconds / args.steps as f64
+                t.samples as f64 / t.seconds,
+                t.rays as f64 / t.seconds,
+                t.samples_per_ray(),
+                t.marched as f64 / t.rays.max(1) as f64,
+                1000.0 * t.seconds / args.steps as f64
             );
             if args.profile {
                 let timed = Timed {
                     threads,
                     steps: args.steps,
-                    steps_ns: elapsed.as_nanos() as u64,
+                    steps_ns: (t.seconds * 1e9) as u64,
                     dataset: &dataset,
                     views: &test_idx,
                 };

@@ -286,15 +286,17 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             }
             Ok(frame) => {
                 let fate = ingest(trainer, state, position, &frame)?;
-                let mut mse = f32::NAN;
+                let mut last = LastLoss(f32::NAN);
                 if !trainer.frames().is_empty() {
-                    for _ in 0..state.settings.steps_per_frame {
-                        mse = trainer
-                            .step(executor)
-                            .map_err(|e| core_error(&frame.name, e))?
-                            .mse;
-                    }
+                    let end = trainer.state().step + state.settings.steps_per_frame;
+                    crate::pipeline::train_steps(trainer, executor, end, &mut last).map_err(
+                        |e| match e {
+                            HostError::Core(reason) => HostError::invalid(&frame.name, reason),
+                            other => other,
+                        },
+                    )?;
                 }
+                let mse = last.0;
                 on_event(&Event::Frame {
                     position,
                     name: &frame.name,
@@ -360,6 +362,21 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
     }
     checkpoint(control, trainer, source, state, on_event)?;
     Ok(Outcome::Finished)
+}
+
+/// The loss of the last training step (NaN before one).
+struct LastLoss(f32);
+
+impl crate::pipeline::Observer for LastLoss {
+    fn step(
+        &mut self,
+        _: &mut Trainer<'_>,
+        _: u32,
+        report: &orbit_nerf_core::StepReport,
+    ) -> Result<crate::pipeline::Flow> {
+        self.0 = report.mse;
+        Ok(crate::pipeline::Flow::Continue)
+    }
 }
 
 /// Save the stream (with the source's arrival names) and report it.
