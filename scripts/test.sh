@@ -23,6 +23,11 @@ done
 echo "cross-build: orbit-nerf-core for thumbv7em-none-eabihf with defmt"
 cargo build -p orbit-nerf-core --release --target thumbv7em-none-eabihf --features defmt
 builds=$((builds + 1))
+# The library's example: a small simulated set trained and scored through orbit_nerf_host alone.
+example_dir=$(mktemp -d)
+cargo run --release --example train_eval -- "$example_dir" | tail -n 1
+rm -rf "$example_dir"
+builds=$((builds + 1))
 # The onboard checks: x86-64 = aarch64 training, Cortex-M = host rendering (under QEMU).
 ./scripts/onboard.sh | tee "$log"
 onboard=$(grep -c '^check passed:' "$log" || true)

@@ -4,9 +4,9 @@
 
 mod commands;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use commands::{
-    ablate, bench, demo, eval, export, render, simulate, stream, sweep, tradeoff, train,
+    ablate, bench, demo, eval, export, reference, render, simulate, stream, sweep, tradeoff, train,
 };
 
 #[derive(Parser)]
@@ -44,11 +44,25 @@ enum Command {
     /// What accuracy costs in time: every knob's variants trained and scored while they
     /// train (anytime curves), Pareto plots of quality against time and memory.
     Tradeoff(tradeoff::TradeoffArgs),
+    /// Shell completions, man pages and the docs book's reference chapters, generated from
+    /// the program's own definitions.
+    Docs(reference::DocsArgs),
+}
+
+/// The command line with the exit codes at the end of every command's `--help`, nested
+/// ones included.
+fn cli_command() -> clap::Command {
+    fn with_exit_codes(command: clap::Command) -> clap::Command {
+        command
+            .after_help(reference::EXIT_CODES)
+            .mut_subcommands(with_exit_codes)
+    }
+    with_exit_codes(Cli::command())
 }
 
 fn main() {
     restore_default_sigpipe();
-    let cli = Cli::parse();
+    let cli = Cli::from_arg_matches(&cli_command().get_matches()).unwrap_or_else(|e| e.exit());
     let result = match cli.command {
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
@@ -61,6 +75,7 @@ fn main() {
         Command::Stream(args) => stream::run(&args),
         Command::Sweep(args) => sweep::run(&args),
         Command::Tradeoff(args) => tradeoff::run(&args),
+        Command::Docs(args) => reference::run(&args, cli_command()),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");
@@ -80,8 +95,30 @@ fn restore_default_sigpipe() {
 
 #[cfg(test)]
 mod tests {
-    use super::Cli;
+    use super::{Cli, cli_command, reference};
     use clap::CommandFactory;
+
+    /// The book's reference chapters are what `orbit-nerf docs reference` writes today: a
+    /// flag, a help text, a config field or a preset's value changed without them fails here
+    /// (regenerate with `cargo run --release -- docs reference --out
+    /// docs/book/src/reference --force`).
+    #[test]
+    fn the_books_reference_chapters_are_current() {
+        let folder =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/book/src/reference");
+        let read = |name: &str| {
+            std::fs::read_to_string(folder.join(name))
+                .unwrap_or_else(|e| panic!("{}: {e}", folder.join(name).display()))
+        };
+        assert!(
+            read("commands.md") == reference::commands_chapter(&mut cli_command()),
+            "docs/book/src/reference/commands.md is stale: regenerate it"
+        );
+        assert!(
+            read("config.md") == reference::config_chapter().unwrap(),
+            "docs/book/src/reference/config.md is stale: regenerate it"
+        );
+    }
 
     /// Every option of every subcommand, nested ones included (`export mesh`, `sweep run`),
     /// says what it does in `--help`.

@@ -331,3 +331,35 @@ fn mean_psnr(text: &str) -> String {
         .unwrap_or_else(|| panic!("no mean PSNR in {text}"));
     line.rsplit(": ").next().unwrap().to_string()
 }
+
+/// `docs` writes what the command line defines: completions for a shell, one man page per
+/// command (not replaced without `--force`), and exit codes at the end of every `--help`.
+#[test]
+fn docs_writes_completions_and_man_pages_and_help_names_the_exit_codes() {
+    let (ok, text) = cli("docs completions bash", &[]);
+    assert!(
+        ok && text.contains("orbit-nerf") && text.contains("--scene-box"),
+        "{text}"
+    );
+    let dir = temp_dir("man");
+    let man = dir.join("man");
+    let (ok, text) = cli("docs man --out", &[man.to_str().unwrap()]);
+    assert!(ok, "{text}");
+    for page in [
+        "orbit-nerf.1",
+        "orbit-nerf-train.1",
+        "orbit-nerf-export-mesh.1",
+    ] {
+        let roff = std::fs::read_to_string(man.join(page)).unwrap();
+        assert!(roff.contains(".TH"), "{page}: {roff}");
+    }
+    let before = std::fs::read(man.join("orbit-nerf.1")).unwrap();
+    let (ok, text) = cli("docs man --out", &[man.to_str().unwrap()]);
+    assert!(!ok && text.contains("--force"), "{text}");
+    assert_eq!(std::fs::read(man.join("orbit-nerf.1")).unwrap(), before);
+    for command in ["train", "eval", "stream", "sweep run"] {
+        let (ok, text) = cli(command, &["--help"]);
+        assert!(ok && text.contains("Exit codes: 0"), "{command}: {text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -2,7 +2,8 @@
 //! correction on one scene) and its pose-noise sweep on the `synthetic` preset.
 
 use super::{
-    FIT_STEPS, Fallible, SceneBox, choose_box, parse_scene_box, preset_config, preset_parser,
+    FIT_STEPS, Fallible, SceneBox, choose_box, machine_threads, parse_scene_box, parse_threads,
+    preset_config, preset_parser,
 };
 use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{
@@ -66,8 +67,8 @@ pub struct AblateArgs {
     /// Steps fitting each held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     pub threads: usize,
     /// Output folder: ablation.md (or pose_noise.md), metrics.json, pictures, the simulated set.
     #[arg(long, default_value = "runs/ablate")]

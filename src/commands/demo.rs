@@ -3,7 +3,7 @@
 
 use super::ablate::{geometry_section, pose_sections, simulated, stated_label_noise, true_surface};
 use super::train::TRAIN_BAR;
-use super::{CliResult, FIT_STEPS, RunningPsnr, bar_style};
+use super::{CliResult, FIT_STEPS, RunningPsnr, bar_style, machine_threads, parse_threads};
 use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::Config;
@@ -20,8 +20,8 @@ pub struct DemoArgs {
     /// Output folder: report.md, metrics.json, renders, the simulated set (data/).
     #[arg(long, default_value = "runs/demo")]
     out: PathBuf,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     threads: usize,
     /// Training steps (default: the demo's budget).
     #[arg(long)]

@@ -1,8 +1,8 @@
 //! `orbit-nerf eval`: score held-out views of a dataset with a checkpoint.
 
 use super::{
-    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, MAX_THREADS, RunArgs, evaluate_checkpoint,
-    open_dataset, print_scores,
+    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, RunArgs, evaluate_checkpoint, machine_threads,
+    open_dataset, parse_threads, print_scores,
 };
 use clap::Args;
 use orbit_nerf_host::report::{Figures, ModelFigures};
@@ -22,8 +22,8 @@ pub struct EvalArgs {
     /// folder when one is given).
     #[arg(long)]
     metrics: Option<PathBuf>,
-    /// Worker threads, 1 to 1024 (results do not depend on it).
-    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     threads: usize,
     /// Steps fitting each view's appearance embedding on its left half (0 to 100000).
     #[arg(long, default_value_t = FIT_STEPS, value_parser = clap::value_parser!(u32).range(0..=MAX_FIT_STEPS))]

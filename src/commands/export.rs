@@ -1,7 +1,7 @@
 //! `orbit-nerf export`: the trained field's geometry as files other tools read: the surface
 //! of its density as a coloured mesh (PLY or OBJ), or as a coloured point cloud (PLY).
 
-use super::{CliResult, Fallible};
+use super::{CliResult, Fallible, machine_threads, parse_threads};
 use clap::{Args, Subcommand};
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::geometry::{self, Mesh, SurfaceOptions, files};
@@ -70,8 +70,8 @@ pub struct ExportArgs {
     /// Memory the density grid may take (K/M/G/T suffixes); default: 80 % of the available.
     #[arg(long, value_parser = values::byte_size)]
     memory_limit: Option<u64>,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2, value_parser = parse_threads)]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     threads: usize,
 }
 
@@ -97,10 +97,6 @@ fn parse_direction(text: &str) -> Result<[f32; 3], String> {
         [_, _, _] => Err("the zero vector has no direction".into()),
         _ => Err(format!("`{text}`: expected x,y,z")),
     }
-}
-
-fn parse_threads(text: &str) -> Result<usize, String> {
-    values::count_in(text, 1..=256)
 }
 
 /// The file formats, by the extension of the output.

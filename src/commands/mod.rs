@@ -6,6 +6,7 @@ pub mod bench;
 pub mod demo;
 pub mod eval;
 pub mod export;
+pub mod reference;
 pub mod render;
 pub mod simulate;
 pub mod stream;
@@ -105,8 +106,8 @@ struct ModelArgs {
     /// Random seed (overrides the config).
     #[arg(long)]
     seed: Option<u64>,
-    /// Worker threads, 1 to 1024 (results do not depend on it).
-    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=MAX_THREADS))]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     threads: usize,
     /// Appearance embedding size per frame, 0 to 128 (overrides the config; 0 disables it).
     #[arg(long, value_parser = clap::value_parser!(u16).range(0..=MAX_EMBEDDING_DIM))]
@@ -194,6 +195,16 @@ fn stop_on_signal() -> CliResult {
 
 /// Most training steps a flag accepts.
 const MAX_STEPS: i64 = 100_000_000;
+/// The machine's cores: every command's default worker threads.
+fn machine_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get().min(MAX_THREADS))
+}
+
+/// `--threads`: 1 to [`MAX_THREADS`].
+fn parse_threads(text: &str) -> Result<usize, String> {
+    values::count_in(text, 1..=MAX_THREADS)
+}
+
 /// Most worker threads a flag accepts.
 const MAX_THREADS: usize = 1024;
 /// Largest appearance embedding (the core's limit).

@@ -1,7 +1,10 @@
 //! `orbit-nerf render`: render views of a dataset's cameras with a checkpoint to PNG, or new
 //! views (an orbit around the target, or a path file) to PNG frames and an animated GIF.
 
-use super::{CliResult, DataArgs, FIT_STEPS, Fallible, RunArgs, evaluate_checkpoint, open_dataset};
+use super::{
+    CliResult, DataArgs, FIT_STEPS, Fallible, RunArgs, evaluate_checkpoint, machine_threads,
+    open_dataset, parse_threads,
+};
 use clap::Args;
 use orbit_nerf_core::Pose;
 use orbit_nerf_core::glam::Vec3;
@@ -44,8 +47,8 @@ pub struct RenderArgs {
     /// [default: RUN/render with --run, else runs/render].
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Worker threads (results do not depend on it).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     threads: usize,
     /// Steps fitting each view's appearance embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
