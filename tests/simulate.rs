@@ -37,7 +37,7 @@ impl Drop for TempDir {
 fn preset(name: &str, frames: u32, size: u16) -> Scene {
     let mut scene = Scene::load(name).unwrap();
     scene.spec.frames = frames;
-    scene.spec.set_width(size);
+    scene.spec.set_longer_side(size);
     scene
 }
 

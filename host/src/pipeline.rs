@@ -35,8 +35,8 @@ use std::time::Instant;
 pub const CHECKPOINT_FILE: &str = "checkpoint.onrf";
 /// The data settings' name in a run folder.
 pub const RUN_FILE: &str = "run.toml";
-/// Default longest image side, pixels, for every command that reads a dataset.
-pub const DEFAULT_SIZE: u32 = 100;
+/// Default longest image side, pixels, for every command that reads or simulates a dataset.
+pub const DEFAULT_SIZE: u32 = 128;
 /// Default hold-out: every 8th view.
 pub const DEFAULT_HOLDOUT: usize = 8;
 /// NeRF-synthetic is composited on white; spacecraft scenes have a black sky (their loaders

@@ -34,7 +34,7 @@ pub struct AblateArgs {
     pub frames: u32,
     /// Image size in pixels: the simulated frames' side, or the longer side a --data set's
     /// frames are resized to (never upsampled).
-    #[arg(long, default_value_t = 128)]
+    #[arg(long, default_value_t = orbit_nerf_host::pipeline::DEFAULT_SIZE as u16)]
     pub size: u16,
     /// Training steps of every model (the same budget for all; default: the config's).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
@@ -108,7 +108,7 @@ pub fn simulated(
 ) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
     let mut scene = Scene::load(scene)?;
     scene.spec.frames = frames;
-    scene.spec.set_width(size);
+    scene.spec.set_longer_side(size);
     if let Some(noise) = noise {
         scene.spec.effects.label_noise =
             (noise.rotation_deg > 0.0 || noise.translation_m > 0.0).then_some(noise);

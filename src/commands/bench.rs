@@ -16,15 +16,16 @@ pub struct BenchArgs {
     /// Dataset to train on (default: the lego scene, relative to the working directory).
     #[arg(long, default_value = "../shared/data/nerf_synthetic/lego")]
     data: PathBuf,
-    /// Resize images so the longer side has at most this many pixels (never upsampled).
-    #[arg(long, default_value_t = 100)]
+    /// Resize images so the longer side has at most this many pixels (never upsampled); the
+    /// benchmark's own default, 100, keeps its figures comparable from one build to the next.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=65_535))]
     size: u32,
-    /// Steps before timing starts (lets the occupancy grid settle).
-    #[arg(long, default_value_t = 300)]
+    /// Training steps before timing starts (lets the occupancy grid settle).
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u32).range(0..=1_000_000))]
     warmup: u32,
-    /// Timed steps.
-    #[arg(long, default_value_t = 200)]
-    steps: u32,
+    /// Training steps timed, after the warm-up ones (the run trains warm-up + timed steps).
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    timed_steps: u32,
     /// Thread counts to measure.
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     threads: Vec<usize>,
@@ -85,7 +86,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
         ..
     } = open_dataset(&settings, None)?;
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
-    base.steps = args.warmup + args.steps;
+    base.steps = args.warmup + args.timed_steps;
     base.warmup_steps = base.warmup_steps.min(base.steps);
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
@@ -115,7 +116,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
             let warm = trainer.state().step + args.warmup;
             pipeline::train_steps(trainer, &executor, warm, &mut ())?;
             start_profile(trainer, args.profile);
-            let end = warm + args.steps;
+            let end = warm + args.timed_steps;
             let t = pipeline::train_steps(trainer, &executor, end, &mut ())?;
             println!(
                 "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
@@ -123,12 +124,12 @@ pub fn run(args: &BenchArgs) -> CliResult {
                 t.rays as f64 / t.seconds,
                 t.samples_per_ray(),
                 t.marched as f64 / t.rays.max(1) as f64,
-                1000.0 * t.seconds / args.steps as f64
+                1000.0 * t.seconds / args.timed_steps as f64
             );
             if args.profile {
                 let timed = Timed {
                     threads,
-                    steps: args.steps,
+                    steps: args.timed_steps,
                     steps_ns: (t.seconds * 1e9) as u64,
                     dataset: &dataset,
                     views: &test_idx,

@@ -36,7 +36,7 @@ struct DataArgs {
     #[arg(long)]
     data: Option<PathBuf>,
     /// Resize images so the longer side has at most this many pixels, 1 to 65535 (smaller
-    /// images keep their size: never upsampled), for every format [default: 100, or the run's].
+    /// images keep their size: never upsampled), for every format [default: 128, or the run's].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=65_535))]
     size: Option<u32>,
     /// Every N-th view (0, N, 2N, ...) is held out for evaluation (1 holds out every view)

@@ -19,7 +19,8 @@ pub struct SimulateArgs {
     /// Number of frames (overrides the scene's `frames`).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: Option<u32>,
-    /// Width and height of the images in pixels (overrides the scene's `size`).
+    /// Longer side of the images in pixels, the scene camera's aspect kept (overrides the
+    /// scene's `size`).
     #[arg(long, value_parser = clap::value_parser!(u16).range(8..))]
     pub size: Option<u16>,
     /// Random seed (overrides the scene's `seed`).
@@ -46,7 +47,7 @@ pub fn run(args: &SimulateArgs) -> Result<(), Box<dyn std::error::Error>> {
         scene.spec.frames = frames;
     }
     if let Some(size) = args.size {
-        scene.spec.set_width(size);
+        scene.spec.set_longer_side(size);
     }
     if let Some(seed) = args.seed {
         scene.spec.seed = seed;

@@ -559,8 +559,21 @@ impl SceneSpec {
         self.height.unwrap_or(self.size)
     }
 
+    /// Output images whose longer side is `side` pixels, the other scaled along (rounded, at
+    /// least 8 px): what `--size` means for every command, simulated or read.
+    pub fn set_longer_side(&mut self, side: u16) {
+        let (width, height) = (u32::from(self.size), u32::from(self.height()));
+        if height > width {
+            let scaled = (width * u32::from(side) + height / 2) / height;
+            self.size = scaled.clamp(8, u32::from(u16::MAX)) as u16;
+            self.height = Some(side);
+        } else {
+            self.set_width(side);
+        }
+    }
+
     /// Output images `width` pixels wide, the height scaled along (rounded, at least 8 px),
-    /// so the scene keeps its aspect ratio at any `--size`.
+    /// so the scene keeps its aspect ratio at any size.
     pub fn set_width(&mut self, width: u16) {
         if let Some(height) = self.height {
             let scaled = (u32::from(height) * u32::from(width) + u32::from(self.size) / 2)
@@ -775,6 +788,20 @@ mod tests {
             (square.size, square.height(), square.height),
             (100, 100, None)
         );
+    }
+
+    /// `--size` is the longer side: the width of a landscape scene, the height of a portrait.
+    #[test]
+    fn a_new_size_is_the_longer_side_whatever_the_orientation() {
+        let mut landscape = Scene::load("inspection").unwrap().spec;
+        landscape.set_longer_side(48);
+        assert_eq!((landscape.size, landscape.height()), (48, 30));
+        let mut portrait = landscape.clone();
+        (portrait.size, portrait.height) = (150, Some(240));
+        portrait.set_longer_side(48);
+        assert_eq!((portrait.size, portrait.height()), (30, 48));
+        portrait.set_longer_side(8);
+        assert_eq!((portrait.size, portrait.height()), (8, 8));
     }
 
     #[test]
