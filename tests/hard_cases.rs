@@ -1287,3 +1287,62 @@ fn output_into_a_closed_pipe_ends_quietly_without_a_panic() {
         output.status
     );
 }
+
+/// No score from a model that sampled nothing (issue 42, first group): `eval` of a
+/// checkpoint on views whose rays all miss its scene box (every label has the target behind
+/// the camera) exits non-zero naming the 0 samples per ray, and writes no render.
+#[test]
+fn eval_where_no_ray_meets_the_box_gives_no_score_and_no_render() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("eval-no-samples");
+    let (data, model) = small_training_run(&scratch);
+    let run = scratch.path("run");
+    let trained = train_small(&data, &model, &run, &[]);
+    assert!(trained.status.success(), "{}", text(&trained));
+    // The same views with every target moved behind its camera.
+    let behind = scratch.path("behind");
+    std::fs::create_dir_all(&behind).unwrap();
+    for entry in ["camera.json", "images", "masks"] {
+        let from = data.join(entry);
+        if from.is_dir() {
+            std::fs::create_dir_all(behind.join(entry)).unwrap();
+            for file in std::fs::read_dir(&from).unwrap() {
+                let file = file.unwrap().path();
+                std::fs::copy(&file, behind.join(entry).join(file.file_name().unwrap())).unwrap();
+            }
+        } else {
+            std::fs::copy(&from, behind.join(entry)).unwrap();
+        }
+    }
+    let mut labels: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(data.join("labels.json")).unwrap()).unwrap();
+    for label in labels.as_array_mut().unwrap() {
+        label["r_Vo2To_vbs_true"] = serde_json::json!([0.0, 0.0, -5.0]);
+    }
+    std::fs::write(behind.join("labels.json"), labels.to_string()).unwrap();
+    let renders = scratch.path("renders");
+    let out = orbit_nerf(&[
+        "eval",
+        "--checkpoint",
+        path_str(&run.join("checkpoint.onrf")),
+        "--data",
+        path_str(&behind),
+        "--size",
+        "32",
+        "--fit-steps",
+        "0",
+        "--renders",
+        path_str(&renders),
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error(
+        "eval with every ray outside the box",
+        &out,
+        &["0 samples per ray", "no score"],
+    );
+    let written = std::fs::read_dir(&renders).map_or(0, |d| d.count());
+    assert_eq!(written, 0, "renders written for a refused evaluation");
+}

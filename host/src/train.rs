@@ -524,22 +524,6 @@ pub fn evaluate_at<E: Executor>(
             }
             Err(e) => return Err(HostError::invalid(&frame.name, e.to_string())),
         };
-        if let Some(dir) = render_dir {
-            crate::io::write_png(
-                &dir.join(format!("view_{index:03}.png")),
-                w,
-                h,
-                3,
-                &to_rgb8(&out),
-            )?;
-            crate::io::write_png(
-                &dir.join(format!("truth_{index:03}.png")),
-                w,
-                h,
-                3,
-                &frame.pixels,
-            )?;
-        }
         scores.push(ViewScore {
             index,
             name: frame.name.clone(),
@@ -554,6 +538,39 @@ pub fn evaluate_at<E: Executor>(
             dataset: dataset.source.clone(),
             views: non_finite,
         });
+    }
+    // The background scores itself where no ray meets the field: no score without a sample.
+    if !scores.is_empty() && scores.iter().all(|s| s.samples_per_ray == 0.0) {
+        return Err(HostError::invalid(
+            &dataset.source,
+            format!(
+                "no ray of the {} held-out views met the scene box {} (0 samples per ray): the model sees nothing there, no score is reported",
+                scores.len(),
+                crate::scene_box::box_text(trainer.config().aabb_min, trainer.config().aabb_max)
+            ),
+        ));
+    }
+    // Written once every view is scored, so a refused evaluation leaves no renders behind.
+    if let Some(dir) = render_dir {
+        for s in &scores {
+            let frame = &dataset.frames[s.index];
+            let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
+            let index = s.index;
+            crate::io::write_png(
+                &dir.join(format!("view_{index:03}.png")),
+                w,
+                h,
+                3,
+                &to_rgb8(&s.render),
+            )?;
+            crate::io::write_png(
+                &dir.join(format!("truth_{index:03}.png")),
+                w,
+                h,
+                3,
+                &frame.pixels,
+            )?;
+        }
     }
     Ok(scores)
 }
