@@ -1346,3 +1346,91 @@ fn eval_where_no_ray_meets_the_box_gives_no_score_and_no_render() {
     let written = std::fs::read_dir(&renders).map_or(0, |d| d.count());
     assert_eq!(written, 0, "renders written for a refused evaluation");
 }
+
+/// Files replaced without `--force` (issue 42, sixth group): `train`'s report files, `eval`'s
+/// renders and metrics.json, `render`'s views and `simulate`'s contact sheet are refused
+/// before any work when they exist, naming the file and `--force`, and left as they were.
+#[test]
+fn outputs_that_exist_are_never_replaced_without_force() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("no-replace");
+    let (data, model) = small_training_run(&scratch);
+    let keep = b"the user's own file".as_slice();
+    let unchanged =
+        |path: &Path| assert_eq!(std::fs::read(path).unwrap(), keep, "{}", path.display());
+
+    // A run folder that holds a config.toml of the user's (no checkpoint).
+    let run = scratch.path("run");
+    std::fs::create_dir_all(&run).unwrap();
+    std::fs::write(run.join("config.toml"), keep).unwrap();
+    let out = train_small(&data, &model, &run, &[]);
+    assert_clear_error("train over config.toml", &out, &["config.toml", "--force"]);
+    unchanged(&run.join("config.toml"));
+    assert!(!run.join("checkpoint.onrf").exists());
+    let out = train_small(&data, &model, &run, &["--force"]);
+    assert!(out.status.success(), "{}", text(&out));
+    let run_flag = path_str(&run);
+
+    // eval's renders and metrics.json, render's views.
+    let renders = scratch.path("renders");
+    std::fs::create_dir_all(&renders).unwrap();
+    std::fs::write(renders.join("view_000.png"), keep).unwrap();
+    let eval = |extra: &[&str]| {
+        let mut args = vec!["eval", "--run", run_flag, "--renders", path_str(&renders)];
+        args.extend_from_slice(extra);
+        orbit_nerf(&args).output().unwrap()
+    };
+    assert_clear_error(
+        "eval over a render",
+        &eval(&[]),
+        &["view_000.png", "--force"],
+    );
+    unchanged(&renders.join("view_000.png"));
+    let metrics = scratch.path("metrics");
+    std::fs::create_dir_all(&metrics).unwrap();
+    std::fs::write(metrics.join("metrics.json"), keep).unwrap();
+    let out = orbit_nerf(&["eval", "--run", run_flag, "--metrics", path_str(&metrics)])
+        .output()
+        .unwrap();
+    assert_clear_error("eval over metrics.json", &out, &["metrics.json", "--force"]);
+    unchanged(&metrics.join("metrics.json"));
+    let out = orbit_nerf(&["render", "--run", run_flag, "--out", path_str(&renders)])
+        .output()
+        .unwrap();
+    assert_clear_error("render over a view", &out, &["view_000.png", "--force"]);
+    unchanged(&renders.join("view_000.png"));
+    let out = eval(&["--force"]);
+    assert!(out.status.success(), "{}", text(&out));
+
+    // simulate's contact sheet, checked before anything is rendered.
+    let sheet = scratch.path("sheet.png");
+    std::fs::write(&sheet, keep).unwrap();
+    let sim_out = scratch.path("sim");
+    let out = orbit_nerf(&[
+        "simulate",
+        "--scene",
+        "lightbox",
+        "--frames",
+        "2",
+        "--size",
+        "16",
+        "--out",
+        path_str(&sim_out),
+        "--contact-sheet",
+        path_str(&sheet),
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error(
+        "simulate over a contact sheet",
+        &out,
+        &["sheet.png", "--force"],
+    );
+    unchanged(&sheet);
+    assert!(
+        !sim_out.exists(),
+        "simulated although the sheet was refused"
+    );
+}

@@ -53,6 +53,27 @@ pub fn check_fresh_checkpoint(path: &Path, replace: bool, run: &str) -> Result<(
     Ok(())
 }
 
+/// Before any work: refuse to replace any of `files` that exists unless `replace` (the
+/// user's `--force`), and refuse a folder where a file is to be written. Nothing the user did
+/// not ask to replace is overwritten.
+pub fn check_new_files<'p>(files: impl IntoIterator<Item = &'p Path>, replace: bool) -> Result<()> {
+    for file in files {
+        if file.is_dir() {
+            return Err(HostError::invalid(
+                file,
+                "is a folder; a file is to be written there",
+            ));
+        }
+        if file.exists() && !replace {
+            return Err(HostError::invalid(
+                file,
+                "already exists; --force replaces it",
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Write `bytes` to `path` atomically (temporary file, fsync, rename). Creates parent folders.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {

@@ -629,6 +629,12 @@ impl Pipeline {
             io::check_output_folder(out)?;
         } else {
             io::check_fresh_checkpoint(&checkpoint_path, options.replace, "training run")?;
+            let renders = train::render_files(&out.join("renders"), &self.data.test);
+            let reports = [RUN_FILE, "config.toml", "metrics.json"].map(|f| out.join(f));
+            io::check_new_files(
+                reports.iter().chain(&renders).map(PathBuf::as_path),
+                options.replace,
+            )?;
         }
         let record = self.record()?;
         let executor = RayonExecutor::new(options.threads)?;

@@ -446,6 +446,14 @@ pub fn fit_held_out_at<E: Executor>(
     Ok((params[..dim].to_vec(), pose))
 }
 
+/// The render and reference files an evaluation of `views` with a render folder `dir` writes
+/// (checked before the work, so none is replaced unasked).
+pub fn render_files(dir: &Path, views: &[usize]) -> Vec<std::path::PathBuf> {
+    (views.iter())
+        .flat_map(|i| ["view", "truth"].map(|kind| dir.join(format!("{kind}_{i:03}.png"))))
+        .collect()
+}
+
 /// Evaluate held-out views as in the paper and K-Planes: with the field frozen, start a
 /// fresh appearance embedding at the mean of the training embeddings, fit it for
 /// `fit_steps` steps on the left half of the view's pixels (skipped without embeddings),

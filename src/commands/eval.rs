@@ -6,7 +6,7 @@ use super::{
 };
 use clap::Args;
 use orbit_nerf_host::report::{Figures, ModelFigures};
-use orbit_nerf_host::{pipeline, train, values};
+use orbit_nerf_host::{io, pipeline, train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -32,6 +32,9 @@ pub struct EvalArgs {
     /// label (BARF's test-time alignment), instead of at its label.
     #[arg(long)]
     align_poses: bool,
+    /// Replace renders and metrics.json already in --renders / --metrics.
+    #[arg(long)]
+    force: bool,
     /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
     /// machine's available memory. Checked before anything large is allocated.
     #[arg(long, value_parser = values::byte_size)]
@@ -45,6 +48,14 @@ pub fn run(args: &EvalArgs) -> CliResult {
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "score")?;
     pipeline::check_checkpoint_memory(&checkpoint, args.memory_limit)?;
     let data = open_dataset(&settings, args.memory_limit)?;
+    let mut outputs: Vec<PathBuf> = Vec::new();
+    if let Some(dir) = &args.renders {
+        outputs.extend(train::render_files(dir, &data.test));
+    }
+    if let Some(dir) = args.metrics.as_ref().or(args.renders.as_ref()) {
+        outputs.push(dir.join("metrics.json"));
+    }
+    io::check_new_files(outputs.iter().map(PathBuf::as_path), args.force)?;
     let scores = evaluate_checkpoint(
         &checkpoint,
         args.threads,

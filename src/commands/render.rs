@@ -10,7 +10,7 @@ use orbit_nerf_core::Pose;
 use orbit_nerf_core::glam::Vec3;
 use orbit_nerf_host::orbit::{self, Surroundings};
 use orbit_nerf_host::pipeline::{self, SplitData};
-use orbit_nerf_host::train::{RayonExecutor, to_rgb8};
+use orbit_nerf_host::train::{self, RayonExecutor, to_rgb8};
 use orbit_nerf_host::{io, values};
 use std::path::{Path, PathBuf};
 
@@ -40,7 +40,7 @@ pub struct RenderArgs {
     /// Milliseconds each GIF frame is shown (10 to 10000).
     #[arg(long, default_value_t = 80, value_parser = parse_frame_ms)]
     frame_ms: u32,
-    /// Replace orbit frames, GIF and MP4 already in --out.
+    /// Replace renders (views, orbit frames, GIF, MP4) already in --out.
     #[arg(long)]
     force: bool,
     /// Output folder: view_NNN.png per dataset view, or the orbit's frames and GIF
@@ -94,6 +94,8 @@ pub fn run(args: &RenderArgs) -> CliResult {
     } else {
         args.views.clone()
     };
+    let files = train::render_files(out, &views);
+    io::check_new_files(files.iter().map(PathBuf::as_path), args.force)?;
     let scores = evaluate_checkpoint(
         &checkpoint,
         args.threads,

@@ -36,6 +36,9 @@ pub struct SimulateArgs {
     /// machine's available memory. Checked before anything is rendered.
     #[arg(long, value_parser = values::byte_size)]
     pub memory_limit: Option<u64>,
+    /// Replace the --contact-sheet file if it exists.
+    #[arg(long)]
+    pub force: bool,
     /// Tiles per row (and at most as many rows) of the contact sheet.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..=32))]
     pub sheet_columns: u16,
@@ -51,6 +54,9 @@ pub fn run(args: &SimulateArgs) -> Result<(), Box<dyn std::error::Error>> {
     }
     if let Some(seed) = args.seed {
         scene.spec.seed = seed;
+    }
+    if let Some(sheet) = &args.contact_sheet {
+        orbit_nerf_host::io::check_new_files([sheet.as_path()], args.force)?;
     }
     let spec = &scene.spec;
     memory::check_plan(
