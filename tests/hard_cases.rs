@@ -1434,3 +1434,43 @@ fn outputs_that_exist_are_never_replaced_without_force() {
         "simulated although the sheet was refused"
     );
 }
+
+/// Memory the plan forgot (issue 42, fourth group): `export` checks the model it restores
+/// (arena, the checkpoint file and its sections) against `--memory-limit` before reading the
+/// file, as `eval` does, and writes nothing; a checkpoint's save streams its sections (no
+/// second copy), so the file is the one a fresh save of the same run writes.
+#[test]
+fn export_checks_the_models_memory_before_reading_it() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("export-memory");
+    let (data, model) = small_training_run(&scratch);
+    let run = scratch.path("run");
+    let out = train_small(&data, &model, &run, &[]);
+    assert!(out.status.success(), "{}", text(&out));
+    let mesh = scratch.path("mesh.ply");
+    let out = orbit_nerf(&[
+        "export",
+        "mesh",
+        "--run",
+        path_str(&run),
+        "--out",
+        path_str(&mesh),
+        "--memory-limit",
+        "64K",
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error(
+        "export over the memory limit",
+        &out,
+        &[
+            "checkpoint.onrf",
+            "memory limit",
+            "checkpoint file",
+            "planes",
+        ],
+    );
+    assert!(!mesh.exists());
+}

@@ -19,7 +19,7 @@
 //! worse, decode a flipped bit into a different but well-formed value).
 
 use crate::error::{HostError, Result};
-use crate::io::write_atomic;
+use crate::io::write_atomic_with;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -79,21 +79,114 @@ impl Checkpoint {
 /// Encode `checkpoint` and write it to `path` atomically (a crash never leaves half a file).
 /// Refuses duplicate section names, which would make [`Checkpoint::section`] ambiguous.
 pub fn save(path: &Path, checkpoint: &Checkpoint) -> Result<()> {
-    if let Some(name) = checkpoint.duplicate_section_name() {
+    let sections: Vec<(&str, &[u8])> = (checkpoint.sections.iter())
+        .map(|s| (s.name.as_str(), s.bytes.as_slice()))
+        .collect();
+    save_parts(path, &checkpoint.kind, &checkpoint.config, &sections)
+}
+
+/// [`save`] of a checkpoint's parts where they lie (a trainer's arena, say): the payload is
+/// streamed to the file in postcard's encoding of a [`Checkpoint`], its length and checksum
+/// computed first, so saving takes no second copy of the model (a run never loses its
+/// training to an allocation at the end).
+pub fn save_parts(
+    path: &Path,
+    kind: &str,
+    config: &[u8],
+    sections: &[(&str, &[u8])],
+) -> Result<()> {
+    if let Some(i) =
+        (1..sections.len()).find(|&i| sections[..i].iter().any(|s| s.0 == sections[i].0))
+    {
         return Err(HostError::invalid(
             path,
-            format!("two sections are named `{name}`"),
+            format!("two sections are named `{}`", sections[i].0),
         ));
     }
-    let payload = postcard::to_stdvec(checkpoint)
-        .map_err(|e| HostError::invalid(path, format!("cannot encode the checkpoint: {e}")))?;
-    let mut bytes = Vec::with_capacity(HEADER_LEN + payload.len());
-    bytes.extend_from_slice(&MAGIC);
-    bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-    bytes.extend_from_slice(&payload);
-    write_atomic(path, &bytes)
+    // The payload as postcard lays out a `Checkpoint`: each string and byte vector as a
+    // varint length and its bytes, the sections as a varint count and each section.
+    let mut pieces: Vec<&[u8]> = Vec::with_capacity(4 * sections.len() + 4);
+    let mut lengths: Vec<[u8; 10]> = Vec::with_capacity(2 * sections.len() + 3);
+    lengths.extend([kind.len(), config.len(), sections.len()].map(varint));
+    for (name, bytes) in sections {
+        lengths.extend([name.len(), bytes.len()].map(varint));
+    }
+    pieces.extend([varint_bytes(&lengths[0]), kind.as_bytes()]);
+    pieces.extend([varint_bytes(&lengths[1]), config]);
+    pieces.push(varint_bytes(&lengths[2]));
+    for (k, (name, bytes)) in sections.iter().enumerate() {
+        pieces.extend([varint_bytes(&lengths[3 + 2 * k]), name.as_bytes()]);
+        pieces.extend([varint_bytes(&lengths[4 + 2 * k]), *bytes]);
+    }
+    let mut crc = crc32fast::Hasher::new();
+    let mut payload_len = 0u64;
+    for piece in &pieces {
+        crc.update(piece);
+        payload_len += piece.len() as u64;
+    }
+    let crc = crc.finalize();
+    write_atomic_with(path, |file| {
+        file.write_all(&MAGIC)?;
+        file.write_all(&FORMAT_VERSION.to_le_bytes())?;
+        file.write_all(&payload_len.to_le_bytes())?;
+        file.write_all(&crc.to_le_bytes())?;
+        pieces.iter().try_for_each(|piece| file.write_all(piece))
+    })
+}
+
+/// `n` as a LEB128 varint (postcard's encoding of lengths), in a 10-byte buffer.
+fn varint(mut n: usize) -> [u8; 10] {
+    let mut out = [0u8; 10];
+    for byte in out.iter_mut() {
+        *byte = (n & 0x7f) as u8;
+        n >>= 7;
+        if n == 0 {
+            break;
+        }
+        *byte |= 0x80;
+    }
+    out
+}
+
+/// The bytes of a [`varint`] buffer in use: up to the first without the continuation bit.
+fn varint_bytes(v: &[u8; 10]) -> &[u8] {
+    &v[..v
+        .iter()
+        .position(|b| b & 0x80 == 0)
+        .map_or(v.len(), |i| i + 1)]
+}
+
+/// Most bytes [`read_head`] reads: the header, the kind and an encoded config are far smaller.
+const HEAD_BYTES: u64 = 1 << 16;
+
+/// The kind and the writer's encoded config of the checkpoint at `path`, and the file's size,
+/// from the head of the file alone: what a memory check needs before the whole file is read.
+/// The checksum is verified only by [`load`].
+pub fn read_head(path: &Path) -> Result<(String, Vec<u8>, u64)> {
+    use std::io::Read;
+    let file = std::fs::File::open(path).map_err(|e| HostError::io(path, e))?;
+    let size = file.metadata().map_err(|e| HostError::io(path, e))?.len();
+    let mut head = Vec::new();
+    file.take(HEAD_BYTES)
+        .read_to_end(&mut head)
+        .map_err(|e| HostError::io(path, e))?;
+    let refuse = |reason: &str| HostError::invalid(path, reason.to_string());
+    if head.len() < HEADER_LEN || head[..MAGIC.len()] != MAGIC {
+        // `load` says precisely what is wrong with such a file.
+        return Err(decode(path, &head)
+            .err()
+            .unwrap_or_else(|| refuse("truncated")));
+    }
+    let version = u32::from_le_bytes(head[8..12].try_into().expect("4-byte slice"));
+    if version != FORMAT_VERSION {
+        return Err(refuse(&format!(
+            "written by checkpoint format version {version}, this build reads version {FORMAT_VERSION}"
+        )));
+    }
+    let (kind, config): (String, Vec<u8>) = postcard::take_from_bytes(&head[HEADER_LEN..])
+        .map(|(head, _)| head)
+        .map_err(|e| refuse(&format!("malformed payload: {e}")))?;
+    Ok((kind, config, size))
 }
 
 /// Read and verify the checkpoint at `path`.
@@ -192,6 +285,28 @@ mod tests {
         save(&path, &sample()).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         (path, bytes)
+    }
+
+    /// The streamed file is byte for byte the header and postcard's encoding of the whole
+    /// checkpoint (lengths of one and two varint bytes, an empty section).
+    #[test]
+    fn a_streamed_save_is_postcards_encoding_with_its_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, bytes) = saved(&dir);
+        let payload = postcard::to_stdvec(&sample()).unwrap();
+        let mut expected = MAGIC.to_vec();
+        expected.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        expected.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        expected.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+        expected.extend_from_slice(&payload);
+        assert_eq!(bytes, expected);
+        for n in [0usize, 127, 128, 16_383, 16_384, usize::MAX] {
+            assert_eq!(
+                varint_bytes(&varint(n)),
+                postcard::to_stdvec(&n).unwrap(),
+                "{n}"
+            );
+        }
     }
 
     fn load_err(path: &Path, bytes: &[u8]) -> String {

@@ -397,20 +397,30 @@ pub fn with_trainer<R, E: From<HostError>>(
     f(&mut trainer)
 }
 
-/// Check the arena the checkpoint at `path` needs against `memory_limit` (default: a share
-/// of the machine's memory) before its data is read.
+/// Check what restoring the checkpoint at `path` takes (the file read whole, its sections
+/// decoded, the arena of its config) against `memory_limit` (default: a share of the
+/// machine's memory), from the head of the file, before the file is read.
 pub fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> Result<()> {
-    let checkpoint = crate::checkpoint::load(path)?;
-    let plan = MemoryPlan::new(&train::checkpoint_config(path, &checkpoint)?);
-    memory::check_arena(path, &plan, memory::limit_or_default(memory_limit))
+    let (kind, config, file_bytes) = crate::checkpoint::read_head(path)?;
+    let plan = MemoryPlan::new(&train::decode_config(path, &kind, &config)?);
+    let mut parts = memory::arena_parts(&plan).to_vec();
+    let listed: u64 = parts.iter().map(|(_, bytes)| *bytes).sum();
+    parts.push(("other", (plan.total as u64).saturating_sub(listed)));
+    parts.extend([
+        ("checkpoint file", file_bytes),
+        ("checkpoint sections", file_bytes),
+    ]);
+    memory::check_plan(path, &parts, memory::limit_or_default(memory_limit))
 }
 
-/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config).
+/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config),
+/// what it takes checked against `memory_limit` first ([`check_checkpoint_memory`]).
 pub fn with_checkpoint<R, E: From<HostError>>(
     path: &Path,
     memory_limit: Option<u64>,
     f: impl FnOnce(&mut Trainer<'_>) -> std::result::Result<R, E>,
 ) -> std::result::Result<R, E> {
+    check_checkpoint_memory(path, memory_limit)?;
     let checkpoint = crate::checkpoint::load(path)?;
     let config = train::checkpoint_config(path, &checkpoint)?;
     with_trainer(config, memory_limit, &[], |trainer| {

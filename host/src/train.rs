@@ -295,7 +295,9 @@ pub const CHECKPOINT_KIND: &str = "orbit-nerf trainer";
 
 /// Save the trainer's whole state (and its config) atomically.
 pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
-    crate::checkpoint::save(path, &checkpoint_of(path, trainer)?)
+    let config = postcard::to_allocvec(trainer.config())
+        .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
+    crate::checkpoint::save_parts(path, CHECKPOINT_KIND, &config, &trainer.sections())
 }
 
 /// The trainer's whole state and config as a checkpoint (`path` names it in errors).
@@ -319,13 +321,18 @@ pub fn checkpoint_of(path: &Path, trainer: &Trainer<'_>) -> Result<Checkpoint> {
 
 /// The config stored in a checkpoint.
 pub fn checkpoint_config(path: &Path, checkpoint: &Checkpoint) -> Result<Config> {
-    if checkpoint.kind != CHECKPOINT_KIND {
+    decode_config(path, &checkpoint.kind, &checkpoint.config)
+}
+
+/// A trainer checkpoint's config from its `kind` and encoded `config` (`path` names it).
+pub fn decode_config(path: &Path, kind: &str, config: &[u8]) -> Result<Config> {
+    if kind != CHECKPOINT_KIND {
         return Err(HostError::invalid(
             path,
-            format!("checkpoint holds `{}`, not a trainer", checkpoint.kind),
+            format!("checkpoint holds `{kind}`, not a trainer"),
         ));
     }
-    let config: Config = postcard::from_bytes(&checkpoint.config)
+    let config: Config = postcard::from_bytes(config)
         .map_err(|e| HostError::field(path, "config", format!("cannot decode: {e}")))?;
     config
         .validate()

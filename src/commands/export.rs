@@ -67,7 +67,8 @@ pub struct ExportArgs {
     /// Replace --out (and --preview) if it exists.
     #[arg(long)]
     force: bool,
-    /// Memory the density grid may take (K/M/G/T suffixes); default: 80 % of the available.
+    /// Largest memory the model and the density grid may take (K/M/G/T suffixes); default:
+    /// 80 % of the machine's available memory. Checked before anything large is allocated.
     #[arg(long, value_parser = values::byte_size)]
     memory_limit: Option<u64>,
     /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
@@ -158,23 +159,24 @@ pub fn run(command: &ExportCommand) -> CliResult {
         resolution: args.resolution,
         threshold: args.threshold,
     };
-    let mesh = pipeline::with_checkpoint(checkpoint, None, |trainer| -> Fallible<_> {
-        let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
-        trainer.mean_embedding(&mut embedding);
-        println!(
-            "surface at density {:.4} on a grid of {} samples along the longest side",
-            geometry::extract::threshold(trainer, &options),
-            options.resolution
-        );
-        Ok(geometry::extract_surface(
-            trainer,
-            &executor,
-            &embedding,
-            &options,
-            checkpoint,
-            memory::limit_or_default(args.memory_limit),
-        )?)
-    })?;
+    let mesh =
+        pipeline::with_checkpoint(checkpoint, args.memory_limit, |trainer| -> Fallible<_> {
+            let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
+            trainer.mean_embedding(&mut embedding);
+            println!(
+                "surface at density {:.4} on a grid of {} samples along the longest side",
+                geometry::extract::threshold(trainer, &options),
+                options.resolution
+            );
+            Ok(geometry::extract_surface(
+                trainer,
+                &executor,
+                &embedding,
+                &options,
+                checkpoint,
+                memory::limit_or_default(args.memory_limit),
+            )?)
+        })?;
     write(out, &mesh, format, points)?;
     if let Some(scene) = &args.chamfer_against {
         let truth = super::ablate::true_surface(scene)?;
