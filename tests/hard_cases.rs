@@ -703,6 +703,12 @@ fn out_of_range_config_file_values_are_refused_naming_the_file_and_field() {
             "rays_per_batch = 99999999999",
             "rays_per_batch",
         ),
+        // A step so long that a stop request would wait for it (issue 42, fifth group).
+        (
+            "rays_per_batch = 1024",
+            "rays_per_batch = 16777216",
+            "rays_per_batch",
+        ),
         (
             "occupancy_threshold = 0.01",
             "occupancy_threshold = -inf",

@@ -78,6 +78,11 @@ pub enum PosePivot {
     TargetOrigin,
 }
 
+/// Most rays one training step may sample (2^20): stop requests are heard between steps, so
+/// a step must stay short on a small machine (a config with 2^24 rays took more than 30 s per
+/// step, issue 42).
+pub const MAX_RAYS_PER_BATCH: u32 = 1 << 20;
+
 /// Everything that decides what the trainer computes. With the `serde` feature it reads from
 /// and writes to config files (every field named, no others) and checkpoints; checkpoints
 /// encode the fields by position, so their order is part of the checkpoint format.
@@ -149,7 +154,8 @@ pub struct Config {
     pub replacement: Replacement,
     /// Pixel capacity of one frame slot (width * height of the largest frame).
     pub max_pixels_per_frame: u32,
-    /// Rays sampled per training step.
+    /// Rays sampled per training step: a multiple of `chunks`, at most 1048576 (stop
+    /// requests are heard between steps, so a step must stay short).
     pub rays_per_batch: u32,
     /// Fraction of the rays drawn inside their frame's foreground box (the mask's box, or the
     /// box of pixels brighter than the sky); the rest cover the whole image, so empty space
@@ -460,7 +466,7 @@ impl Config {
         }
         if self.rays_per_batch == 0
             || !self.rays_per_batch.is_multiple_of(self.chunks as u32)
-            || self.rays_per_batch > (1 << 24)
+            || self.rays_per_batch > MAX_RAYS_PER_BATCH
         {
             return bad("rays_per_batch");
         }
