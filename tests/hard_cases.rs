@@ -1309,21 +1309,8 @@ fn eval_where_no_ray_meets_the_box_gives_no_score_and_no_render() {
     assert!(trained.status.success(), "{}", text(&trained));
     // The same views with every target moved behind its camera.
     let behind = scratch.path("behind");
-    std::fs::create_dir_all(&behind).unwrap();
-    for entry in ["camera.json", "images", "masks"] {
-        let from = data.join(entry);
-        if from.is_dir() {
-            std::fs::create_dir_all(behind.join(entry)).unwrap();
-            for file in std::fs::read_dir(&from).unwrap() {
-                let file = file.unwrap().path();
-                std::fs::copy(&file, behind.join(entry).join(file.file_name().unwrap())).unwrap();
-            }
-        } else {
-            std::fs::copy(&from, behind.join(entry)).unwrap();
-        }
-    }
-    let mut labels: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(data.join("labels.json")).unwrap()).unwrap();
+    copy_images_and_camera(&data, &behind);
+    let mut labels = read_json(&data.join("labels.json"));
     for label in labels.as_array_mut().unwrap() {
         label["r_Vo2To_vbs_true"] = serde_json::json!([0.0, 0.0, -5.0]);
     }
@@ -1479,4 +1466,116 @@ fn export_checks_the_models_memory_before_reading_it() {
         ],
     );
     assert!(!mesh.exists());
+}
+
+/// A SPEED+ folder's camera, images and masks copied into `to` (labels and truth left out).
+fn copy_images_and_camera(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in ["camera.json", "images", "masks"] {
+        let source = from.join(entry);
+        if source.is_dir() {
+            std::fs::create_dir_all(to.join(entry)).unwrap();
+            for file in std::fs::read_dir(&source).unwrap() {
+                let file = file.unwrap().path();
+                std::fs::copy(&file, to.join(entry).join(file.file_name().unwrap())).unwrap();
+            }
+        } else {
+            std::fs::copy(&source, to.join(entry)).unwrap();
+        }
+    }
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// Duplicates and inconsistent truth (issue 42, second group) and values no camera has
+/// (seventh): labels that name an image twice (same or other pose), a truth file that names
+/// one twice, a truth quaternion that is not unit, a target 1e30 m away or at the camera, an
+/// inverted truth box: each refused by `train` naming the file and the field, nothing written.
+#[test]
+fn duplicate_labels_and_impossible_poses_are_refused_naming_the_file_and_field() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("bad-poses");
+    let (data, model) = small_training_run(&scratch);
+    let labels = read_json(&data.join("labels.json"));
+    let truth = read_json(&data.join("truth.json"));
+    type Edit = fn(&mut serde_json::Value, &mut serde_json::Value);
+    let cases: [(&str, Edit, &str, &str); 7] = [
+        (
+            "same image twice, same pose",
+            |l, _| {
+                let first = l[0].clone();
+                l.as_array_mut().unwrap().push(first);
+            },
+            "labels.json",
+            "filename",
+        ),
+        (
+            "same image twice, other pose",
+            |l, _| {
+                let mut first = l[0].clone();
+                first["r_Vo2To_vbs_true"] = serde_json::json!([0.1, 0.0, 4.0]);
+                l.as_array_mut().unwrap().push(first);
+            },
+            "labels.json",
+            "filename",
+        ),
+        (
+            "truth names an image twice",
+            |_, t| {
+                let first = t["frames"][0].clone();
+                t["frames"].as_array_mut().unwrap().push(first);
+            },
+            "truth.json",
+            "frames[12].filename",
+        ),
+        (
+            "truth quaternion not unit",
+            |_, t| {
+                t["frames"][2]["q_vbs2tango_true"] = serde_json::json!([0.9, 0.1, 0.1, 0.1]);
+            },
+            "truth.json",
+            "frames[2].q_vbs2tango_true",
+        ),
+        (
+            "target 1e30 m away",
+            |l, _| {
+                l[3]["r_Vo2To_vbs_true"] = serde_json::json!([0.0, 0.0, 1e30]);
+            },
+            "labels.json",
+            "[3].r_Vo2To_vbs_true",
+        ),
+        (
+            "camera at the target's origin",
+            |l, _| {
+                l[1]["r_Vo2To_vbs_true"] = serde_json::json!([0.0, 0.0, 0.0]);
+            },
+            "labels.json",
+            "[1].r_Vo2To_vbs_true",
+        ),
+        (
+            "inverted truth box",
+            |_, t| {
+                let (min, max) = (t["target_box_min"].clone(), t["target_box_max"].clone());
+                (t["target_box_min"], t["target_box_max"]) = (max, min);
+            },
+            "truth.json",
+            "target_box_min",
+        ),
+    ];
+    for (k, (case, edit, file, field)) in cases.into_iter().enumerate() {
+        let folder = scratch.path(&format!("case{k}"));
+        copy_images_and_camera(&data, &folder);
+        let (mut l, mut t) = (labels.clone(), truth.clone());
+        edit(&mut l, &mut t);
+        std::fs::write(folder.join("labels.json"), l.to_string()).unwrap();
+        std::fs::write(folder.join("truth.json"), t.to_string()).unwrap();
+        let out = scratch.path(&format!("run{k}"));
+        let result = train_small(&folder, &model, &out, &[]);
+        assert_clear_error(case, &result, &[file, field]);
+        assert!(!out.exists(), "{case}: wrote {}", out.display());
+    }
 }

@@ -81,6 +81,7 @@ pub fn parse_labels(path: &Path, text: &str) -> Result<Vec<Label>> {
 }
 
 fn labels_of(json: &JsonFile) -> Result<Vec<Label>> {
+    check_label_names(json)?;
     label_entries(json)?
         .iter()
         .enumerate()
@@ -105,6 +106,15 @@ pub fn write_labels(path: &Path, labels: &[Label]) -> Result<()> {
     write_json(path, labels)
 }
 
+/// A label file's entries name each image once.
+fn check_label_names(json: &JsonFile) -> Result<()> {
+    let entries = label_entries(json)?;
+    let names = entries
+        .iter()
+        .map(|e| e.get("filename").and_then(Value::as_str));
+    check_unique_filenames(&json.path, "", names)
+}
+
 /// The entries of a label file (a list).
 fn label_entries(json: &JsonFile) -> Result<&Vec<Value>> {
     json.root
@@ -123,25 +133,86 @@ fn parse_label_entry(json: &JsonFile, prefix: &str, entry: &Value) -> Result<Lab
     let (q_key, q_value) = first_key(entry, &["q_vbs2tango_true", "q_vbs2tango"])
         .ok_or_else(|| HostError::field(path, field("q_vbs2tango_true"), "missing"))?;
     let q: [f64; 4] = json.numbers_exact(q_value, &field(q_key))?;
-    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    if norm < 1e-9 {
-        return Err(HostError::field(path, field(q_key), "zero quaternion"));
-    }
-    if (norm - 1.0).abs() > UNIT_QUATERNION_TOLERANCE {
-        return Err(HostError::field(
-            path,
-            field(q_key),
-            format!("not a unit quaternion (norm {norm})"),
-        ));
-    }
+    check_rotation(path, &field(q_key), &q)?;
     let (r_key, r_value) = first_key(entry, &["r_Vo2To_vbs_true", "r_Vo2To_vbs"])
         .ok_or_else(|| HostError::field(path, field("r_Vo2To_vbs_true"), "missing"))?;
     let r: [f64; 3] = json.numbers_exact(r_value, &field(r_key))?;
+    check_position(path, &field(r_key), &r)?;
     Ok(Label {
         filename: filename.to_owned(),
         q_vbs2tango: q,
         r_vo2to_vbs: r,
     })
+}
+
+/// A pose's rotation must be a unit quaternion (labels and truth alike).
+fn check_rotation(path: &Path, field: &str, q: &[f64; 4]) -> Result<()> {
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !norm.is_finite() || norm < 1e-9 {
+        return Err(HostError::field(
+            path,
+            field,
+            "zero or non-finite quaternion",
+        ));
+    }
+    if (norm - 1.0).abs() > UNIT_QUATERNION_TOLERANCE {
+        return Err(HostError::field(
+            path,
+            field,
+            format!("not a unit quaternion (norm {norm})"),
+        ));
+    }
+    Ok(())
+}
+
+/// Farthest target a label may place, metres: ten times geostationary altitude, far past
+/// any camera that resolves a spacecraft.
+const MAX_RANGE_M: f64 = 4e8;
+/// Nearest: a camera closer than this to the target's origin sits inside any spacecraft.
+const MIN_RANGE_M: f64 = 1e-3;
+
+/// A pose's position (the target's origin in camera axes, metres) must be a place a camera
+/// can be: finite, off the target's origin and within [`MAX_RANGE_M`].
+fn check_position(path: &Path, field: &str, r: &[f64; 3]) -> Result<()> {
+    let range = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !range.is_finite() || range > MAX_RANGE_M {
+        return Err(HostError::field(
+            path,
+            field,
+            format!("the target is {range:e} m from the camera, beyond {MAX_RANGE_M:e} m"),
+        ));
+    }
+    if range < MIN_RANGE_M {
+        return Err(HostError::field(
+            path,
+            field,
+            format!("the camera sits at the target's origin ({range:e} m from it)"),
+        ));
+    }
+    Ok(())
+}
+
+/// One image, one entry: refuse labels or truth that name an image twice (`prefix` names the
+/// list: `frames` gives `frames[3].filename`, an empty prefix `[3].filename`).
+fn check_unique_filenames<'v>(
+    path: &Path,
+    prefix: &str,
+    names: impl Iterator<Item = Option<&'v str>>,
+) -> Result<()> {
+    let mut seen = std::collections::HashMap::new();
+    for (index, name) in names.enumerate() {
+        let Some(name) = name else { continue };
+        if let Some(first) = seen.insert(name, index) {
+            return Err(HostError::field(
+                path,
+                format!("{prefix}[{index}].filename"),
+                format!(
+                    "names `{name}` again (entry {first} names it first): one image, one entry"
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 fn first_key<'a>(entry: &'a Value, keys: &[&'static str]) -> Option<(&'static str, &'a Value)> {
@@ -193,14 +264,33 @@ impl Truth {
     pub fn parse(path: &Path, text: &str) -> Result<Truth> {
         let truth: Truth = serde_json::from_str(text)
             .map_err(|e| HostError::invalid(path, format!("malformed truth file: {e}")))?;
+        // A truth file is checked as strictly as labels.
+        check_unique_filenames(
+            path,
+            "frames",
+            truth.frames.iter().map(|f| Some(f.filename.as_str())),
+        )?;
         for (index, frame) in truth.frames.iter().enumerate() {
+            let field = |name: &str| format!("frames[{index}].{name}");
+            check_rotation(path, &field("q_vbs2tango_true"), &frame.q_vbs2tango_true)?;
+            check_position(path, &field("r_Vo2To_vbs_true"), &frame.r_vo2to_vbs_true)?;
             if frame.label().pose().is_none() {
                 return Err(HostError::field(
                     path,
-                    format!("frames[{index}].q_vbs2tango_true"),
+                    field("q_vbs2tango_true"),
                     "zero or non-finite pose",
                 ));
             }
+        }
+        let (min, max) = (truth.target_box_min, truth.target_box_max);
+        if !(0..3).all(|a| min[a].is_finite() && max[a].is_finite() && min[a] < max[a]) {
+            return Err(HostError::field(
+                path,
+                "target_box_min",
+                format!(
+                    "the target box {min:?} .. {max:?} is not a finite box with min below max on every axis"
+                ),
+            ));
         }
         Ok(truth)
     }
@@ -342,7 +432,7 @@ impl SpeedPlusReader {
         })?;
         let camera = SpeedCamera::read(&camera_file)?;
         let labels = JsonFile::read_any(&label_file)?;
-        label_entries(&labels)?;
+        check_label_names(&labels)?;
         let images_dir = find_images_dir(&label_dir, options)?;
         let masks_dir = Some(label_dir.join("masks")).filter(|dir| dir.is_dir());
         let truth_file = label_dir.join("truth.json");
