@@ -1579,3 +1579,54 @@ fn duplicate_labels_and_impossible_poses_are_refused_naming_the_file_and_field()
         assert!(!out.exists(), "{case}: wrote {}", out.display());
     }
 }
+
+/// Errors that name the right thing (issue 42, eighth group): an image whose header is a
+/// GIF's (with a huge declared size) is named as a GIF, not as the decoder's memory limit;
+/// an OBJ target with a vertex at 1e30 is named as such, not as a mesh without triangles.
+#[test]
+fn a_gif_named_png_and_a_far_vertex_are_named_for_what_they_are() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("named-errors");
+    let (data, model) = small_training_run(&scratch);
+    let mut gif = b"GIF89a".to_vec();
+    gif.extend_from_slice(&[0xff, 0xff, 0xff, 0xff, 0, 0, 0, 0x3b]);
+    std::fs::write(data.join("images/img000002.png"), &gif).unwrap();
+    let out = scratch.path("run");
+    let result = train_small(&data, &model, &out, &[]);
+    assert_clear_error("GIF-headed PNG", &result, &["img000002.png", "GIF"]);
+    assert!(!text(&result).contains("Memory limit"), "{}", text(&result));
+
+    let mesh = scratch.path("far.obj");
+    std::fs::write(
+        &mesh,
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1e30 0 1\nf 1 2 3\nf 1 2 4\n",
+    )
+    .unwrap();
+    let base = std::fs::read_to_string(root().join("scenes/synthetic.toml")).unwrap();
+    let scene = base
+        .replace(
+            "model = \"tango\"\nlandmarks = \"tango-landmarks.csv\"",
+            &format!("model = \"mesh\"\npath = \"{}\"", mesh.display()),
+        )
+        .replace(
+            "[target.materials]\nbody = \"mli\"\npanel = \"solar_cell\"\nantenna = \"metal\"\n",
+            "",
+        );
+    let scene_path = scratch.path("far.toml");
+    std::fs::write(&scene_path, scene).unwrap();
+    let sim_out = scratch.path("sim");
+    let result = orbit_nerf(&[
+        "simulate",
+        "--scene",
+        path_str(&scene_path),
+        "--frames",
+        "2",
+    ])
+    .args(["--size", "16", "--out", path_str(&sim_out)])
+    .output()
+    .unwrap();
+    assert_clear_error("OBJ vertex at 1e30", &result, &["far.obj", "farther than"]);
+    assert!(!sim_out.exists());
+}

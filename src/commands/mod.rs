@@ -278,12 +278,13 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
         mean.psnr_full
     );
     println!(
-        "mean right-half PSNR {:.2} dB, foreground PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, JNB {:.3}",
+        "mean right-half PSNR {:.2} dB, foreground PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, JNB {:.3} (blur per edge), CPBD {:.3}",
         mean.psnr_right,
         mean.psnr_foreground,
         mean.psnr_foreground_right,
         mean.ssim_full,
-        mean.jnb_full
+        mean.jnb_full,
+        mean.cpbd_full
     );
     mean
 }

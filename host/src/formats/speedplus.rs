@@ -664,7 +664,34 @@ fn image_from_bytes(
     bytes: &[u8],
     camera: &SpeedCamera,
 ) -> Result<image::DynamicImage> {
-    let image = image::load_from_memory(bytes)
+    // The format and size from the header, before decoding: a file that is not what its
+    // name says, or a header of another size, is named as such (not as the decoder's limit).
+    let reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| HostError::io(path, e))?;
+    match reader.format() {
+        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
+        Some(other) => {
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "is a {} file; SPEED+ images are PNG or JPEG",
+                    other
+                        .extensions_str()
+                        .first()
+                        .map_or(format!("{other:?}"), |e| e.to_uppercase())
+                ),
+            ));
+        }
+        None => {
+            return Err(HostError::invalid(
+                path,
+                "is neither a PNG nor a JPEG file (unknown header)",
+            ));
+        }
+    }
+    let image = reader
+        .decode()
         .map_err(|e| HostError::invalid(path, format!("cannot decode image: {e}")))?;
     if (image.width(), image.height()) != (camera.width, camera.height) {
         return Err(HostError::invalid(

@@ -27,11 +27,11 @@ pub struct JnbScore {
     /// Ferzli & Karam's sharpness `S = L / D`: higher is sharper. `f64::INFINITY` when no edge
     /// width was measured (nothing blurred to see).
     pub sharpness: f64,
-    /// `1 / S = D / L`: lower is sharper. This is the number to report as "JNB score": the
-    /// orbit-NeRF paper reports JNB with "lower is better", and its values grow as the
-    /// reconstruction blurs (0.0337 -> 0.0496 as training images drop from 400 to 25; pose
-    /// correction, which sharpens, takes Sunlamp from 0.0402 to 0.0389). That is how `1 / S`
-    /// behaves; `S` itself moves the other way.
+    /// `1 / S = D / L`: lower is sharper. The orbit-NeRF paper reports JNB this way round
+    /// ("lower is better"; 0.0337 -> 0.0496 as training images drop from 400 to 25), but the
+    /// ratio falls with the block count `L` (the image's area) and grows with the edge count
+    /// through `D`: its magnitudes are those of 1920 x 1200 images, so the reports use
+    /// [`JnbScore::blur_per_edge`] instead.
     pub blur: f64,
     /// Number of 64x64 blocks in the image (`floor(H/64) * floor(W/64)`).
     pub blocks: usize,
@@ -39,6 +39,13 @@ pub struct JnbScore {
     pub edge_blocks: usize,
     /// The pooled distortion `D`.
     pub distortion: f64,
+    /// Edge widths measured (in edge blocks).
+    pub edges: usize,
+    /// The blur per edge, `D / edges^(1/beta)`: the beta-mean of the edges' width over their
+    /// just-noticeable width, which depends on how blurred the edges are and not on how many
+    /// blocks or edges the image has (so images of any size compare). Lower is sharper; 1 is
+    /// the just-noticeable blur; 0 without edges.
+    pub blur_per_edge: f64,
 }
 
 /// No-reference JNB sharpness (Ferzli & Karam, "A no-reference objective image sharpness metric
@@ -54,10 +61,11 @@ pub fn jnb<T: Sample>(image: &ImageRef<T>, variant: JnbVariant) -> Result<JnbSco
     let gray = image.gray_255("JNB")?;
     let analysis = EdgeAnalysis::new(&gray);
     let blocks = analysis.block_count();
-    let mut edge_blocks = 0;
+    let (mut edge_blocks, mut edges) = (0, 0);
     let mut pooled = 0.0;
     for block in analysis.edge_blocks() {
         edge_blocks += 1;
+        edges += block.widths.len();
         let just_noticeable = match variant {
             JnbVariant::Asu if block.contrast < 60 => 5.0,
             JnbVariant::Paper if block.contrast <= 50 => 5.0,
@@ -81,12 +89,19 @@ pub fn jnb<T: Sample>(image: &ImageRef<T>, variant: JnbVariant) -> Result<JnbSco
     } else {
         (f64::INFINITY, 0.0)
     };
+    let blur_per_edge = if edges > 0 {
+        distortion / (edges as f64).powf(1.0 / JNB_BETA)
+    } else {
+        0.0
+    };
     Ok(JnbScore {
         sharpness,
         blur,
         blocks,
         edge_blocks,
         distortion,
+        edges,
+        blur_per_edge,
     })
 }
 

@@ -108,6 +108,7 @@ mod tests {
             jnb_full: 2.0,
             psnr_foreground: f64::NAN,
             psnr_foreground_right: 3.0,
+            cpbd_full: 0.5,
         };
         let figures = Figures::new(
             "eval",

@@ -61,6 +61,7 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
         "PSNR full",
         "SSIM full",
         "JNB full",
+        "CPBD full",
         "fg PSNR",
         "fg PSNR right",
         "train s",
@@ -77,6 +78,7 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
                 format!("{:.2}", m.psnr_full),
                 format_or_na(m.ssim_full, 4),
                 format_or_na(m.jnb_full, 4),
+                format_or_na(m.cpbd_full, 4),
                 format_or_na(m.psnr_foreground, 2),
                 format_or_na(m.psnr_foreground_right, 2),
                 format!("{:.1}", row.train_seconds),
@@ -85,9 +87,11 @@ pub fn ablation_table(rows: &[ModelRow]) -> String {
         .collect();
     let mut table = markdown_table(&header, &body);
     table.push_str(
-        "\nPSNR in dB on 8-bit images (inf: render equals reference). JNB: Ferzli & Karam blur \
-         D/L, paper variant (L = edge blocks, W_JNB = 5 for block contrast <= 50), on the \
-         render's luma; lower is sharper. \"right\": x >= width/2, the half the appearance \
+        "\nPSNR in dB on 8-bit images (inf: render equals reference). JNB: Ferzli & Karam's blur \
+         per edge (the beta-mean of edge width over the just-noticeable width, 5 for block \
+         contrast <= 50, else 3; independent of the image size), on the render's luma; lower is \
+         sharper. CPBD: Narvekar & Karam's probability of blur detection; higher is sharper. \
+         \"right\": x >= width/2, the half the appearance \
          embedding was not fitted on. \"fg\": over the pixels the mask marks as target (n/a \
          without masks). With masks applied (the default) the references' sky is the background \
          colour, so SSIM is on masked images.\n",
@@ -268,6 +272,7 @@ mod tests {
             jnb_full: f64::NAN,
             psnr_foreground: 27.123,
             psnr_foreground_right: f64::NAN,
+            cpbd_full: 0.71,
         }
     }
 
@@ -293,7 +298,7 @@ mod tests {
         }
         let cells: Vec<&str> = lines[2].split('|').map(str::trim).collect();
         assert_eq!(
-            cells[1..11],
+            cells[1..12],
             [
                 "ours + pose",
                 "30.54",
@@ -302,12 +307,13 @@ mod tests {
                 "31.00",
                 "0.9600",
                 "n/a",
+                "0.7100",
                 "27.12",
                 "n/a",
                 "1800.0"
             ]
         );
-        assert!(table.contains("paper variant"), "{table}");
+        assert!(table.contains("blur per edge"), "{table}");
     }
 
     #[test]

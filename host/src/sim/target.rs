@@ -467,6 +467,10 @@ fn rod(start: Vec3, end: Vec3) -> Vec<[Vec3; 3]> {
     triangles
 }
 
+/// Largest vertex coordinate of a target mesh, metres (a spacecraft is metres to a few
+/// hundred metres across).
+const MAX_VERTEX_M: f32 = 1e5;
+
 /// The objects/groups of an OBJ file as parts (triangulated, scaled to metres).
 fn obj_parts(path: &Path, scale: f32) -> Result<Vec<Part>> {
     let options = tobj::LoadOptions {
@@ -501,14 +505,23 @@ fn obj_parts(path: &Path, scale: f32) -> Result<Vec<Part>> {
             }),
         }
     }
-    if parts
-        .iter()
-        .flat_map(|p| &p.triangles)
-        .any(|t| !t.iter().all(|v| v.is_finite()))
+    let corners = parts.iter().flat_map(|p| &p.triangles).flatten();
+    if let Some(v) = corners.clone().find(|v| !v.is_finite()) {
+        return Err(HostError::invalid(
+            path,
+            format!("the mesh has a non-finite vertex ({v})"),
+        ));
+    }
+    // Farther than this, a triangle's edges overflow f32 products and it silently vanishes.
+    if let Some(v) = corners
+        .clone()
+        .find(|v| v.abs().max_element() > MAX_VERTEX_M)
     {
         return Err(HostError::invalid(
             path,
-            "the mesh has non-finite vertex coordinates",
+            format!(
+                "the mesh has a vertex at {v} m (after the scale), farther than {MAX_VERTEX_M:e} m from its origin"
+            ),
         ));
     }
     Ok(parts)

@@ -97,6 +97,7 @@ impl AnytimePoint {
             jnb_full: f64::NAN,
             psnr_foreground: self.psnr_foreground,
             psnr_foreground_right: f64::NAN,
+            cpbd_full: f64::NAN,
         }
     }
 }

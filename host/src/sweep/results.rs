@@ -108,6 +108,9 @@ pub struct Metrics {
     pub ssim_right: Option<f64>,
     pub jnb_full: Option<f64>,
     pub jnb_right: Option<f64>,
+    /// Absent in records written before CPBD was reported.
+    #[serde(default)]
+    pub cpbd_full: Option<f64>,
 }
 
 /// [`PoseErrors`] as stored.
@@ -142,6 +145,7 @@ impl From<ViewMetrics> for Metrics {
             ssim_right: stored(m.ssim_right),
             jnb_full: stored(m.jnb_full),
             jnb_right: stored(m.jnb_right),
+            cpbd_full: stored(m.cpbd_full),
         }
     }
 }
@@ -157,6 +161,7 @@ impl From<Metrics> for ViewMetrics {
             ssim_right: loaded(m.ssim_right),
             jnb_full: loaded(m.jnb_full),
             jnb_right: loaded(m.jnb_right),
+            cpbd_full: loaded(m.cpbd_full),
         }
     }
 }
@@ -638,6 +643,7 @@ mod tests {
             jnb_full: 1.5,
             psnr_foreground: 20.0,
             psnr_foreground_right: 21.0,
+            cpbd_full: 0.5,
         };
         let stored = Metrics::from(metrics);
         let text = serde_json::to_string(&stored).unwrap();

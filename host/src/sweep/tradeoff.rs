@@ -560,6 +560,7 @@ mod tests {
             ssim_right: 0.8,
             jnb_full: 1.0,
             jnb_right: 1.0,
+            cpbd_full: 0.5,
         }
     }
 
