@@ -271,6 +271,8 @@ fn a_run_folder_remembers_its_data_for_every_command_that_reads_it() {
 
     let (ok, text) = cli("eval --fit-steps 0 --run", &[run_str]);
     assert!(ok, "{text}");
+    // A simulated set has exact poses: held-out views are scored there, by train and eval.
+    assert!(text.contains("scored at their exact poses"), "{text}");
     assert_eq!(mean_psnr(&text), trained_psnr, "{text}");
     let (ok, text) = cli("render --orbit 3 --run", &[run_str]);
     assert!(ok, "{text}");

@@ -60,6 +60,8 @@ pub struct DataSettings {
 /// A dataset with its training and held-out view indices.
 pub struct SplitData {
     pub dataset: Dataset,
+    /// Every frame's exact pose, when the data has them (`truth.json`).
+    pub truth: Option<Vec<orbit_nerf_core::Pose>>,
     pub train: Vec<usize>,
     pub test: Vec<usize>,
     /// How many views a mask was applied to.
@@ -89,7 +91,8 @@ impl DataSettings {
 
     /// Read the dataset, apply its masks (unless `masks` is off) and split it.
     pub fn open(&self) -> Result<SplitData> {
-        let mut dataset = formats::open(&self.data, Some(self.size), NERF_BACKGROUND)?;
+        let (mut dataset, truth) =
+            formats::open_with_truth(&self.data, Some(self.size), NERF_BACKGROUND)?;
         if dataset.frames.is_empty() {
             return Err(HostError::invalid(&self.data, "no frames"));
         }
@@ -97,6 +100,7 @@ impl DataSettings {
         let (train, test) = dataset::split_every(dataset.frames.len(), self.holdout);
         Ok(SplitData {
             dataset,
+            truth,
             train,
             test,
             masked,
@@ -113,6 +117,17 @@ impl SplitData {
                 self.masked
             )
         })
+    }
+
+    /// The line saying where held-out views are scored: at their exact poses when the data
+    /// has them, else at their labels.
+    pub fn scored_at(&self) -> &'static str {
+        match self.truth {
+            Some(_) => {
+                "held-out views scored at their exact poses (truth.json), as the paper's test set is"
+            }
+            None => "held-out views scored at their labels (the data has no exact poses)",
+        }
     }
 
     fn training_frames(&self) -> Vec<&Frame> {
@@ -684,13 +699,13 @@ impl Pipeline {
                     step: trainer.state().step,
                 });
             }
-            let scores = train::evaluate(
+            let scores = train::evaluate_at(
                 trainer,
                 &executor,
                 &self.data.dataset,
                 &self.data.test,
-                options.fit_steps,
-                options.align_poses,
+                self.data.truth.as_deref(),
+                (options.fit_steps, options.align_poses),
                 Some(&out.join("renders")),
             )?;
             let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();

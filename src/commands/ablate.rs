@@ -10,7 +10,6 @@ use orbit_nerf_host::ablation::{
     self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
 };
 use orbit_nerf_host::dataset::{Dataset, split_every};
-use orbit_nerf_host::formats::speedplus::{self, LoadOptions};
 use orbit_nerf_host::formats::{self, Format};
 use orbit_nerf_host::geometry::{self, Triangle};
 use orbit_nerf_host::presets;
@@ -200,27 +199,11 @@ pub fn geometry_section(results: &[&VariantResult], truth: &[Triangle]) -> Strin
 /// Load a dataset folder of any format, with its exact poses when it has them (a SPEED+
 /// folder's `truth.json`), its masks applied when `masks`.
 pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
-    let (mut dataset, truth) = match Format::of(path) {
-        Format::SpeedPlus => {
-            let set = speedplus::load(
-                path,
-                &LoadOptions {
-                    max_side: Some(size as u32),
-                    domain: None,
-                },
-            )?;
-            let truth = set.true_poses()?;
-            (set.dataset, truth)
-        }
-        _ => (
-            formats::open(
-                path,
-                Some(size as u32),
-                orbit_nerf_host::pipeline::NERF_BACKGROUND,
-            )?,
-            None,
-        ),
-    };
+    let (mut dataset, truth) = formats::open_with_truth(
+        path,
+        Some(size as u32),
+        orbit_nerf_host::pipeline::NERF_BACKGROUND,
+    )?;
     if masks {
         dataset.apply_masks();
     }

@@ -56,10 +56,11 @@ pub fn run(args: &EvalArgs) -> CliResult {
         outputs.push(dir.join("metrics.json"));
     }
     io::check_new_files(outputs.iter().map(PathBuf::as_path), args.force)?;
+    println!("{}", data.scored_at());
     let scores = evaluate_checkpoint(
         &checkpoint,
         args.threads,
-        &data.dataset,
+        &data,
         &data.test,
         (args.fit_steps, args.align_poses),
         args.renders.as_deref(),

@@ -21,7 +21,7 @@ use orbit_nerf_host::dataset::Dataset;
 use orbit_nerf_host::pipeline::{self, ChosenConfig, DataChoice, DataSettings, SplitData};
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box;
-use orbit_nerf_host::train::{RayonExecutor, ViewScore, evaluate};
+use orbit_nerf_host::train::{RayonExecutor, ViewScore, evaluate_at};
 use orbit_nerf_host::{presets, values};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -289,26 +289,26 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
     mean
 }
 
-/// Score `views` of `dataset` with the checkpoint at `path` (restored with its own config),
-/// fitting each view's embedding (and with `align_poses` its pose correction) for
-/// `fit_steps`; renders go to `renders` when given.
+/// Score `views` of `data` with the checkpoint at `path` (restored with its own config), at
+/// their exact poses when the data has them, fitting each view's embedding (and with
+/// `align_poses` its pose correction) for `fit_steps`; renders go to `renders` when given.
 fn evaluate_checkpoint(
     path: &Path,
     threads: usize,
-    dataset: &Dataset,
+    data: &SplitData,
     views: &[usize],
-    (fit_steps, align_poses): (u32, bool),
+    fit: (u32, bool),
     renders: Option<&Path>,
 ) -> Fallible<Vec<ViewScore>> {
     let executor = RayonExecutor::new(threads)?;
     pipeline::with_checkpoint(path, None, |trainer| -> Fallible<_> {
-        Ok(evaluate(
+        Ok(evaluate_at(
             trainer,
             &executor,
-            dataset,
+            &data.dataset,
             views,
-            fit_steps,
-            align_poses,
+            data.truth.as_deref(),
+            fit,
             renders,
         )?)
     })

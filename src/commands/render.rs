@@ -90,7 +90,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
     let data = open_dataset(&settings, None)?;
     let views = if args.views.is_empty() {
-        data.test
+        data.test.clone()
     } else {
         args.views.clone()
     };
@@ -99,7 +99,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
     let scores = evaluate_checkpoint(
         &checkpoint,
         args.threads,
-        &data.dataset,
+        &data,
         &views,
         (args.fit_steps, args.align_poses),
         Some(out),

@@ -80,6 +80,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
         pipeline.config.steps,
         args.model.threads
     );
+    println!("{}", data.scored_at());
     let mut progress = ProgressLines::new(args.resume)?;
     let outcome = pipeline.train(&args.out, &options, &mut progress)?;
     progress.bar.finish_and_clear();

@@ -56,6 +56,17 @@ impl Format {
 /// (a label file with `camera.json`). `max_side` resizes the images (longer side in pixels).
 /// NeRF-synthetic images are composited on `background` (NeRF's convention is white).
 pub fn open(path: &Path, max_side: Option<u32>, background: [f32; 3]) -> Result<Dataset> {
+    Ok(open_with_truth(path, max_side, background)?.0)
+}
+
+/// [`open`], with every frame's exact pose when the data has them (a SPEED+ / simulator
+/// folder's `truth.json`), in frame order: held-out views are scored there, as the paper's
+/// test set is.
+pub fn open_with_truth(
+    path: &Path,
+    max_side: Option<u32>,
+    background: [f32; 3],
+) -> Result<(Dataset, Option<Vec<orbit_nerf_core::Pose>>)> {
     if !path.exists() {
         return Err(HostError::invalid(path, "no such file or folder"));
     }
@@ -68,15 +79,20 @@ pub fn open(path: &Path, max_side: Option<u32>, background: [f32; 3]) -> Result<
             } else {
                 path.parent().unwrap_or(path)
             };
-            nerf_synthetic::load_nerf_synthetic(dir, SyntheticSplit::Train, &options)
+            Ok((
+                nerf_synthetic::load_nerf_synthetic(dir, SyntheticSplit::Train, &options)?,
+                None,
+            ))
         }
-        Format::Nerfstudio => nerfstudio::load_nerfstudio(path, &options),
+        Format::Nerfstudio => Ok((nerfstudio::load_nerfstudio(path, &options)?, None)),
         Format::SpeedPlus => {
             let options = speedplus::LoadOptions {
                 max_side,
                 domain: None,
             };
-            Ok(speedplus::load(path, &options)?.dataset)
+            let set = speedplus::load(path, &options)?;
+            let truth = set.true_poses()?;
+            Ok((set.dataset, truth))
         }
     }
 }
