@@ -96,10 +96,86 @@ pub fn split_every(frame_count: usize, every: usize) -> (Vec<usize>, Vec<usize>)
     (0..frame_count).partition(|i| i % every != 0)
 }
 
+/// A training set and a separate test set as one dataset (the test set's frames after the
+/// training set's, its truth after the training set's), with every training frame a training
+/// view and every test frame a held-out view: the paper's protocol, where the test views are
+/// other viewpoints and lighting, never trained on. The exact poses are kept only when both
+/// sets have them (a truth that covered half the frames would misreport the other half).
+pub fn with_test_set(
+    (mut train, train_truth): (Dataset, Option<Vec<Pose>>),
+    (test, test_truth): (Dataset, Option<Vec<Pose>>),
+) -> (Dataset, Option<Vec<Pose>>, Vec<usize>, Vec<usize>) {
+    let trained = train.frames.len();
+    let tested = test.frames.len();
+    train.frames.extend(test.frames);
+    let truth = match (train_truth, test_truth) {
+        (Some(mut both), Some(test)) => {
+            both.extend(test);
+            Some(both)
+        }
+        _ => None,
+    };
+    (
+        train,
+        truth,
+        (0..trained).collect(),
+        (trained..trained + tested).collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use orbit_nerf_core::glam::{Mat3, Vec3};
+
+    /// The test set's frames are held-out views only, after every training frame.
+    #[test]
+    fn a_separate_test_set_is_held_out_and_never_a_training_view() {
+        let set = |name: &str, frames: usize| Dataset {
+            source: name.into(),
+            frames: (0..frames)
+                .map(|i| Frame {
+                    name: format!("{name}{i}"),
+                    camera: Camera {
+                        width: 1,
+                        height: 1,
+                        fx: 1.0,
+                        fy: 1.0,
+                        cx: 0.5,
+                        cy: 0.5,
+                    },
+                    pose: Pose {
+                        rotation: Mat3::IDENTITY,
+                        center: Vec3::ZERO,
+                    },
+                    pixels: vec![0; 3],
+                    mask: None,
+                    alpha_composited: false,
+                })
+                .collect(),
+            scene_min: [-1.0; 3],
+            scene_max: [1.0; 3],
+            scene_box: SceneBoxOrigin::Unknown,
+            background: [0.0; 3],
+        };
+        let poses = |n: usize| Some(vec![set("p", 1).frames[0].pose; n]);
+        let (merged, truth, train, test) =
+            with_test_set((set("train", 5), poses(5)), (set("test", 3), poses(3)));
+        assert_eq!(train, [0, 1, 2, 3, 4]);
+        assert_eq!(test, [5, 6, 7]);
+        assert!(
+            test.iter()
+                .all(|&i| merged.frames[i].name.starts_with("test"))
+        );
+        assert!(
+            train
+                .iter()
+                .all(|&i| merged.frames[i].name.starts_with("train"))
+        );
+        assert_eq!(truth.map(|t| t.len()), Some(8));
+        let (_, truth, _, _) = with_test_set((set("train", 5), poses(5)), (set("test", 3), None));
+        assert!(truth.is_none());
+    }
 
     #[test]
     fn masks_paint_the_background_only_where_the_mask_is_zero_and_not_over_alpha() {

@@ -9,7 +9,7 @@ use orbit_nerf_core::{Config, Pose};
 use orbit_nerf_host::ablation::{
     self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
 };
-use orbit_nerf_host::dataset::{Dataset, split_every};
+use orbit_nerf_host::dataset::{Dataset, split_every, with_test_set};
 use orbit_nerf_host::formats::{self, Format};
 use orbit_nerf_host::geometry::{self, Triangle};
 use orbit_nerf_host::presets;
@@ -61,8 +61,14 @@ pub struct AblateArgs {
     #[arg(long, value_delimiter = ',', default_values_t = TRANSLATION_LEVELS_MM)]
     pub translation_levels: Vec<f32>,
     /// Every N-th view is held out.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = |text: &str| orbit_nerf_host::values::count_in(text, 1..=1_000_000))]
     pub holdout: usize,
+    /// Test on this separate dataset (any format; every view held out, scored at its exact
+    /// pose where it has one) and train on every view of the training set, as the paper does
+    /// (train on one set, test on another set's viewpoints and lighting); --holdout is then
+    /// not used.
+    #[arg(long, conflicts_with_all = ["holdout", "pose_noise"])]
+    pub test_data: Option<PathBuf>,
     /// Steps fitting each held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     pub fit_steps: u32,
@@ -245,7 +251,7 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
     if args.data.is_none() {
         stated_label_noise(&args.scene)?.state_in(&mut base);
     }
-    let (mut dataset, truth) = match &args.data {
+    let (dataset, truth) = match &args.data {
         Some(path) => load(path, args.size, !args.no_masks)?,
         None => simulated(
             &args.scene,
@@ -256,7 +262,13 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             !args.no_masks,
         )?,
     };
-    let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
+    let (mut dataset, truth, train_idx, test_idx) = match &args.test_data {
+        Some(test) => with_test_set((dataset, truth), load(test, args.size, !args.no_masks)?),
+        None => {
+            let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
+            (dataset, truth, train_idx, test_idx)
+        }
+    };
     choose_box(
         &mut dataset,
         args.scene_box,
@@ -304,15 +316,24 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             .as_ref()
             .map_or(args.scene.clone(), |p| p.display().to_string())
     )?;
+    let held_out = match &args.test_data {
+        Some(test) => format!(
+            "trained on all {} frames, tested on the {} views of the separate test set `{}`",
+            train_idx.len(),
+            test_idx.len(),
+            test.display()
+        ),
+        None => format!(
+            "{} frames, every {}th held out ({} views)",
+            dataset.frames.len(),
+            args.holdout,
+            test_idx.len()
+        ),
+    };
     writeln!(
         text,
-        "{} frames of {} px, every {}th held out ({} views), {} steps per model; held-out embeddings fitted for {} steps on the left half.\n",
-        dataset.frames.len(),
-        args.size,
-        args.holdout,
-        test_idx.len(),
-        base.steps,
-        args.fit_steps
+        "{held_out}, {} px, {} steps per model; held-out embeddings fitted for {} steps on the left half.\n",
+        args.size, base.steps, args.fit_steps
     )?;
     writeln!(text, "{}", report::ablation_table(&rows))?;
     let pose_rows: Vec<_> = results

@@ -5,6 +5,7 @@ use super::{
     open_dataset, parse_threads, print_scores,
 };
 use clap::Args;
+use orbit_nerf_host::pipeline::DataSettings;
 use orbit_nerf_host::report::{Figures, ModelFigures};
 use orbit_nerf_host::{io, pipeline, train, values};
 use std::path::PathBuf;
@@ -15,6 +16,10 @@ pub struct EvalArgs {
     model: RunArgs,
     #[command(flatten)]
     data: DataArgs,
+    /// Score every view of this separate test set (any format; read at the run's size and
+    /// masks) instead of the data's held-out views: the paper's protocol.
+    #[arg(long)]
+    test_data: Option<PathBuf>,
     /// Write renders and ground truth of the held-out views here.
     #[arg(long)]
     renders: Option<PathBuf>,
@@ -46,6 +51,15 @@ pub fn run(args: &EvalArgs) -> CliResult {
         orbit_nerf_host::io::check_output_folder(dir)?;
     }
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "score")?;
+    // A separate test set: every view held out, read as the run's data is.
+    let settings = match &args.test_data {
+        Some(test) => DataSettings {
+            data: test.clone(),
+            holdout: 1,
+            ..settings
+        },
+        None => settings,
+    };
     pipeline::check_checkpoint_memory(&checkpoint, args.memory_limit)?;
     let data = open_dataset(&settings, args.memory_limit)?;
     let mut outputs: Vec<PathBuf> = Vec::new();
