@@ -1,6 +1,7 @@
 //! orbit-nerf-host: the std harness around the no_std core.
 
 pub mod ablation;
+pub mod ablation_report;
 pub mod checkpoint;
 pub mod dataset;
 pub mod error;

@@ -5,19 +5,19 @@ use super::{
     FIT_STEPS, Fallible, SceneBox, choose_box, machine_threads, parse_scene_box, parse_threads,
     preset_config, preset_parser,
 };
-use orbit_nerf_core::{Config, Pose};
+use orbit_nerf_core::Config;
 use orbit_nerf_host::ablation::{
     self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
 };
-use orbit_nerf_host::dataset::{Dataset, split_every, with_test_set};
-use orbit_nerf_host::formats::{self, Format};
-use orbit_nerf_host::geometry::{self, Triangle};
+use orbit_nerf_host::ablation_report::{
+    experiment_report, load, simulated, stated_label_noise, true_surface,
+};
+use orbit_nerf_host::dataset::{split_every, with_test_set};
+use orbit_nerf_host::formats::Format;
 use orbit_nerf_host::presets;
-use orbit_nerf_host::report::{self, ModelOutcome, ModelRow, NoiseLevelResult};
-use orbit_nerf_host::sim::{self, Scene, scene::LabelNoise};
+use orbit_nerf_host::report::{self, ModelOutcome, NoiseLevelResult};
+use orbit_nerf_host::sim::scene::LabelNoise;
 use orbit_nerf_host::sweep::{NoiseLevels, SweepDescription};
-use orbit_nerf_host::train::to_rgb8;
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug, Clone)]
@@ -100,120 +100,6 @@ pub enum Sweep {
     Rotation,
     Translation,
     Both,
-}
-
-/// Simulate `scene` (with optional label noise) into `out` and load it with its exact poses.
-pub fn simulated(
-    scene: &str,
-    frames: u32,
-    size: u16,
-    noise: Option<LabelNoise>,
-    out: &Path,
-    masks: bool,
-) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
-    let mut scene = Scene::load(scene)?;
-    scene.spec.frames = frames;
-    scene.spec.set_longer_side(size);
-    if let Some(noise) = noise {
-        scene.spec.effects.label_noise =
-            (noise.rotation_deg > 0.0 || noise.translation_m > 0.0).then_some(noise);
-    }
-    sim::simulate(&scene, out, &|| {})?;
-    load(out, size, masks)
-}
-
-/// The report's sections on poses: the held-out views scored at their labels, exact poses
-/// and aligned, and the refined training poses' uncertainty (with pose correction).
-pub fn pose_sections(results: &[&VariantResult]) -> String {
-    let scored: Vec<_> = results
-        .iter()
-        .map(|r| {
-            let name = r.variant.name.to_string();
-            (name, r.metrics, r.metrics_exact, r.metrics_aligned)
-        })
-        .collect();
-    let mut text = format!(
-        "\n## Held-out views at their labels, exact poses and aligned\n\nEach view's embedding \
-         fitted on its left half, then rendered at its label (the protocol on noisy labels), at \
-         its exact pose (where the data has one, as the paper's test set) and at its label \
-         aligned by the pose refinement on the same half.\n\n{}",
-        report::held_out_poses_table(&scored)
-    );
-    let uncertain: Vec<_> = results
-        .iter()
-        .filter_map(|r| Some((r.variant.name.to_string(), r.pose_uncertainty?, *r)))
-        .collect();
-    if !uncertain.is_empty() {
-        let times: Vec<String> = (uncertain.iter())
-            .map(|(name, _, r)| {
-                format!(
-                    "{name} {:.1} s of {:.1} s",
-                    r.pose_refine_seconds, r.train_seconds
-                )
-            })
-            .collect();
-        let rows: Vec<_> = (uncertain.iter())
-            .map(|(name, u, _)| (name.clone(), *u))
-            .collect();
-        text.push_str(&format!(
-            "\n## Uncertainty of the refined training poses\n\nEach frame's 1-sigma from the pose \
-             refinement's information matrix (per-frame figures in metrics.json), and how often \
-             the true error lies within 3 sigma. The refinement's share of the training time: \
-             {}.\n\n{}",
-            times.join(", "),
-            report::pose_uncertainty_table(&rows)
-        ));
-    }
-    text
-}
-
-/// The label noise a scene states (none: exact labels), for the pose correction's prior.
-pub fn stated_label_noise(scene: &str) -> Fallible<LabelNoise> {
-    Ok(Scene::load(scene)?
-        .spec
-        .effects
-        .label_noise
-        .unwrap_or(LabelNoise {
-            rotation_deg: 0.0,
-            translation_m: 0.0,
-        }))
-}
-
-/// The true surface of a simulated scene: the target's triangles in metres, in its body
-/// frame, which is the world frame of the dataset the simulator writes.
-pub fn true_surface(scene: &str) -> Fallible<Vec<Triangle>> {
-    Ok(sim::Target::build(&Scene::load(scene)?)?.surface())
-}
-
-/// The report's geometry section: each model's surface against the true one.
-pub fn geometry_section(results: &[&VariantResult], truth: &[Triangle]) -> String {
-    let rows: Vec<_> = results
-        .iter()
-        .map(|r| ablation::geometry_row(r, truth))
-        .collect();
-    format!(
-        "\n## Geometry: Chamfer distance to the true shape\n\nEach field's surface at the default \
-         density threshold on a {}-sample grid (as `orbit-nerf export mesh` writes it) against the \
-         simulated target's mesh: {} points drawn uniformly by area on each, each point's \
-         distance to the nearest point drawn on the other, both directions pooled.\n\n{}",
-        geometry::extract::DEFAULT_RESOLUTION,
-        geometry::chamfer::DEFAULT_SAMPLES,
-        report::geometry_table(&rows)
-    )
-}
-
-/// Load a dataset folder of any format, with its exact poses when it has them (a SPEED+
-/// folder's `truth.json`), its masks applied when `masks`.
-pub fn load(path: &Path, size: u16, masks: bool) -> Fallible<(Dataset, Option<Vec<Pose>>)> {
-    let (mut dataset, truth) = formats::open_with_truth(
-        path,
-        Some(size as u32),
-        orbit_nerf_host::pipeline::NERF_BACKGROUND,
-    )?;
-    if masks {
-        dataset.apply_masks();
-    }
-    Ok((dataset, truth))
 }
 
 pub fn run(args: &AblateArgs) -> Fallible<()> {
@@ -300,22 +186,6 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
         );
         results.push(result);
     }
-    let rows: Vec<ModelRow> = results
-        .iter()
-        .map(|r| ModelRow {
-            name: r.variant.name.to_string(),
-            metrics: r.metrics,
-            train_seconds: r.train_seconds,
-        })
-        .collect();
-    let mut text = String::new();
-    writeln!(
-        text,
-        "# Ablation on `{}`\n",
-        args.data
-            .as_ref()
-            .map_or(args.scene.clone(), |p| p.display().to_string())
-    )?;
     let held_out = match &args.test_data {
         Some(test) => format!(
             "trained on all {} frames, tested on the {} views of the separate test set `{}`",
@@ -330,43 +200,22 @@ fn ablate(args: &AblateArgs) -> Fallible<()> {
             test_idx.len()
         ),
     };
-    writeln!(
-        text,
-        "{held_out}, {} px, {} steps per model; held-out embeddings fitted for {} steps on the left half.\n",
-        args.size, base.steps, args.fit_steps
+    let surface = match &args.data {
+        Some(_) => None,
+        None => Some(true_surface(&args.scene)?),
+    };
+    let source = (args.data.as_ref()).map_or(args.scene.clone(), |p| p.display().to_string());
+    let text = experiment_report(
+        &format!("Ablation on `{source}`"),
+        &format!(
+            "{held_out}, {} px, {} steps per model; held-out embeddings fitted for {} steps on the left half.",
+            args.size, base.steps, args.fit_steps
+        ),
+        &results,
+        surface.as_deref(),
+        (&dataset, &test_idx),
+        (&args.out, "compare_view_"),
     )?;
-    writeln!(text, "{}", report::ablation_table(&rows))?;
-    let pose_rows: Vec<_> = results
-        .iter()
-        .filter_map(|r| Some((r.variant.name.to_string(), r.pose_before?, r.pose_after?)))
-        .collect();
-    if !pose_rows.is_empty() {
-        writeln!(
-            text,
-            "\n## Pose error of the training labels against the exact poses\n"
-        )?;
-        writeln!(text, "{}", report::pose_error_table(&pose_rows))?;
-    }
-    text.push_str(&pose_sections(&results.iter().collect::<Vec<_>>()));
-    if args.data.is_none() {
-        let truth = true_surface(&args.scene)?;
-        let all: Vec<&VariantResult> = results.iter().collect();
-        text.push_str(&geometry_section(&all, &truth));
-    }
-    writeln!(text, "\n## Renders (truth, baseline, ours, ours + pose)\n")?;
-    for (k, &index) in test_idx.iter().enumerate().take(4) {
-        let frame = &dataset.frames[index];
-        let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
-        let renders: Vec<Vec<u8>> = results.iter().map(|r| to_rgb8(&r.renders[k])).collect();
-        let mut tiles: Vec<(&str, &[u8])> = vec![("truth", &frame.pixels)];
-        for (r, px) in results.iter().zip(&renders) {
-            tiles.push((r.variant.name, px));
-        }
-        let (sw, sh, strip) = report::side_by_side(&tiles, w, h);
-        let name = format!("compare_view_{index:03}.png");
-        orbit_nerf_host::io::write_png(&args.out.join(&name), sw, sh, 3, &strip)?;
-        writeln!(text, "![view {index}]({name})")?;
-    }
     orbit_nerf_host::io::write_atomic(&args.out.join("ablation.md"), text.as_bytes())?;
     let models = results.iter().map(VariantResult::figures).collect();
     report::Figures::new("ablate", models).write(&args.out)?;

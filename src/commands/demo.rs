@@ -1,16 +1,17 @@
 //! `orbit-nerf demo`: the built-in default. Simulate the lightbox preset, train the method,
 //! evaluate and write a report.
 
-use super::ablate::{geometry_section, pose_sections, simulated, stated_label_noise, true_surface};
 use super::train::TRAIN_BAR;
 use super::{CliResult, FIT_STEPS, RunningPsnr, bar_style, machine_threads, parse_threads};
 use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::Config;
 use orbit_nerf_host::ablation::{self, APPEARANCE_POSE};
+use orbit_nerf_host::ablation_report::{
+    experiment_report, simulated, stated_label_noise, true_surface,
+};
 use orbit_nerf_host::dataset;
 use orbit_nerf_host::report;
-use orbit_nerf_host::train;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -76,39 +77,19 @@ pub fn run(args: &DemoArgs) -> CliResult {
         },
     )?;
     bar.finish_and_clear();
-    let mut text = format!(
-        "# orbit-nerf demo\n\nThe `lightbox` preset ({DEMO_FRAMES} frames of {DEMO_SIZE} px, every 8th of them held out), \
-         trained for {} steps with appearance embeddings and pose correction in {:.1} s; held-out \
-         embeddings fitted for {FIT_STEPS} steps on the left half of each view.\n\n",
-        config.steps, result.train_seconds
-    );
-    let row = report::ModelRow {
-        name: "ours + pose".into(),
-        metrics: result.metrics,
-        train_seconds: result.train_seconds,
-    };
-    text.push_str(&report::ablation_table(&[row]));
-    if let (Some(before), Some(after)) = (result.pose_before, result.pose_after) {
-        text.push_str("\n## Pose error of the training labels\n\n");
-        text.push_str(&report::pose_error_table(&[(
-            "ours + pose".into(),
-            before,
-            after,
-        )]));
-    }
-    text.push_str(&pose_sections(&[&result]));
-    text.push_str(&geometry_section(&[&result], &true_surface("lightbox")?));
-    text.push_str("\n## Held-out views (truth, render)\n\n");
-    for (k, &index) in test_idx.iter().enumerate().take(4) {
-        let frame = &dataset.frames[index];
-        let (w, h) = (frame.camera.width as u32, frame.camera.height as u32);
-        let render = train::to_rgb8(&result.renders[k]);
-        let (sw, sh, strip) =
-            report::side_by_side(&[("truth", &frame.pixels), ("ours + pose", &render)], w, h);
-        let name = format!("view_{index:03}.png");
-        orbit_nerf_host::io::write_png(&args.out.join(&name), sw, sh, 3, &strip)?;
-        writeln!(text, "![view {index}]({name})")?;
-    }
+    let mut text = experiment_report(
+        "orbit-nerf demo",
+        &format!(
+            "The `lightbox` preset ({DEMO_FRAMES} frames of {DEMO_SIZE} px, every 8th of them held out), \
+             trained for {} steps with appearance embeddings and pose correction in {:.1} s; held-out \
+             embeddings fitted for {FIT_STEPS} steps on the left half of each view.",
+            config.steps, result.train_seconds
+        ),
+        std::slice::from_ref(&result),
+        Some(&true_surface("lightbox")?),
+        (&dataset, &test_idx),
+        (&args.out, "view_"),
+    )?;
     writeln!(
         text,
         "\nTotal wall time (simulate, train, evaluate, report): {:.1} s",

@@ -179,7 +179,7 @@ pub fn run(command: &ExportCommand) -> CliResult {
         })?;
     write(out, &mesh, format, points)?;
     if let Some(scene) = &args.chamfer_against {
-        let truth = super::ablate::true_surface(scene)?;
+        let truth = orbit_nerf_host::ablation_report::true_surface(scene)?;
         let samples = geometry::chamfer::DEFAULT_SAMPLES;
         match geometry::chamfer_distance(&mesh.triangle_corners(), &truth, samples) {
             Some(c) => println!(

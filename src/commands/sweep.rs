@@ -3,9 +3,9 @@
 //! Both run each task through the same entry point, `run-task`, which writes the task's
 //! results atomically into `<out>/tasks/<index>/`; a task with a result is never run again.
 
-use super::ablate::{load, simulated};
 use super::{Fallible, choose_box};
 use orbit_nerf_host::ablation::{Experiment, Progress};
+use orbit_nerf_host::ablation_report::{load, simulated};
 use orbit_nerf_host::dataset::split_every;
 use orbit_nerf_host::error::HostError;
 use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
