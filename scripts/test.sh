@@ -28,6 +28,10 @@ example_dir=$(mktemp -d)
 cargo run --release --example train_eval -- "$example_dir" | tail -n 1
 rm -rf "$example_dir"
 builds=$((builds + 1))
+# The docs book built with mdBook (its links are checked by tests/docs.rs).
+./scripts/book.sh | tee "$log"
+book=$(grep -c '^check passed:' "$log" || true)
+builds=$((builds + book))
 # The onboard checks: x86-64 = aarch64 training, Cortex-M = host rendering (under QEMU).
 ./scripts/onboard.sh | tee "$log"
 onboard=$(grep -c '^check passed:' "$log" || true)

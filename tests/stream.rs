@@ -463,7 +463,7 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
     };
     // Frames 1, 3, 5, ... are broken, each in its own way; the even ones are good.
     let problems: [(&str, &str); 7] = [
-        ("unreadable image", "cannot decode image"),
+        ("unreadable image", "neither a PNG nor a JPEG"),
         ("wrong size", "image is 20x20"),
         ("missing label", "missing label"),
         ("malformed label", "malformed JSON"),

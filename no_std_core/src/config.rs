@@ -212,7 +212,7 @@ pub struct Config {
     /// Levenberg-Marquardt iterations per frame of the pose refinement with the field frozen
     /// (`Trainer::refine_pose`) after the last step. With 0 the trained corrections are kept
     /// and only their uncertainty is computed: at a few hundred rays per frame the steps
-    /// fit the field's own errors about as often as the pose (docs/pose-correction.md).
+    /// fit the field's own errors about as often as the pose (docs/book/src/pose-correction.md).
     pub pose_refine_iterations: u32,
     /// Rays per frame of each refinement evaluation (run in batches of `rays_per_batch`).
     pub pose_refine_rays: u32,

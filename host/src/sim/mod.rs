@@ -1,5 +1,5 @@
 //! Scene simulator: renders a target spacecraft under orbital illumination and writes a dataset
-//! in the SPEED+ format (see `docs/simulator.md`).
+//! in the SPEED+ format (see `docs/book/src/simulator.md`).
 //!
 //! A scene (TOML, [`Scene`]) names the target, the camera, the pose distribution, the sun path
 //! and the effects to compute. Only the listed effects run; [`SimulationReport::timing_table`]

@@ -68,7 +68,7 @@ pub fn preset_names() -> impl Iterator<Item = &'static str> {
     PRESETS.iter().map(|(name, _)| *name)
 }
 
-/// A scene file as written (every field documented in `docs/simulator.md`).
+/// A scene file as written (every field documented in `docs/book/src/simulator.md`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneSpec {

@@ -116,7 +116,7 @@ pub(super) enum View<'v> {
 /// How many rays' worth of residuals carry the evidence of one independent observation: a
 /// field's errors are smooth, so neighbouring residuals are alike, and counting every ray as
 /// independent would make the evidence (and the reported certainty) this many times too
-/// strong. Measured on simulated sets with exact poses (docs/pose-correction.md): with
+/// strong. Measured on simulated sets with exact poses (docs/book/src/pose-correction.md): with
 /// every ray counted, the true errors were about six times the stated sigma.
 pub const RESIDUAL_CORRELATION: f32 = 32.0;
 
