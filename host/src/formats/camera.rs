@@ -257,7 +257,7 @@ impl SpeedCamera {
 
     /// The distortion coefficients as used (f32), zero or not.
     fn lens(&self) -> Distortion {
-        Distortion(self.dist_coeffs.map(|c| c as f32))
+        Distortion::Opencv(self.dist_coeffs.map(|c| c as f32))
     }
 
     /// Invert [`SpeedCamera::distort`] by fixed-point iteration (as OpenCV's `undistortPoints`).

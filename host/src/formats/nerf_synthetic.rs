@@ -115,6 +115,7 @@ impl SyntheticReader {
                 mask: None,
                 pose,
                 declared_size: None,
+                lens: None,
             });
         }
         let first_size = jobs

@@ -1,16 +1,19 @@
 //! nerfstudio captures: `transforms.json` with pinhole intrinsics (`fl_x, fl_y, cx, cy, w, h`)
-//! at the top level or per frame, `file_path` relative to the JSON's folder, optional
-//! `mask_path`, optional scene box (`aabb` or `scene_box`). Frames are read as in
-//! [`super::transforms`].
+//! and lens distortion (`camera_model`, `k1`.., `p1`, `p2`) at the top level or per frame,
+//! `file_path` relative to the JSON's folder, optional `mask_path`, optional scene box (`aabb`
+//! or `scene_box`). Frames are read as in [`super::transforms`].
 
 use super::json::JsonFile;
-use super::transforms::{FrameJob, Intrinsics, LoadOptions, decode_all};
+use super::resample::Distortion;
+use super::transforms::{FrameJob, Intrinsics, Lens, LoadOptions, decode_all};
 use crate::dataset::{Dataset, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use glam::{DMat3, DVec3, Vec3};
+use serde_json::Value;
 use std::path::Path;
 
-/// Camera models nerfstudio writes that are pinhole projections (plus lens distortion).
+/// Camera models nerfstudio reads as pinhole projections with OpenCV's standard distortion
+/// (`k1, k2, k3, p1, p2`, each zero when absent); COLMAP's radial models are its subsets.
 const PERSPECTIVE_CAMERA_MODELS: [&str; 5] = [
     "SIMPLE_PINHOLE",
     "PINHOLE",
@@ -19,11 +22,33 @@ const PERSPECTIVE_CAMERA_MODELS: [&str; 5] = [
     "OPENCV",
 ];
 
+/// OpenCV's equidistant fisheye model (`cv::fisheye`, coefficients `k1..k4`).
+const FISHEYE_CAMERA_MODEL: &str = "OPENCV_FISHEYE";
+
+/// The largest radial (`k`) and tangential (`p`) coefficients accepted: far beyond any real
+/// lens (COLMAP's fits stay well under 1), so a larger one is a broken calibration.
+const MAX_RADIAL: f64 = 10.0;
+const MAX_TANGENTIAL: f64 = 1.0;
+
+/// The lens family `camera_model` names; its coefficients may differ frame to frame.
+#[derive(Clone, Copy)]
+enum LensModel {
+    Perspective,
+    Fisheye,
+}
+
 /// Load a nerfstudio `transforms.json` (or the folder holding one).
 ///
-/// Intrinsics may be global or per frame (a frame's value wins). Lens distortion keys (`k1`..,
-/// `p1`, `p2`) are accepted and ignored: frames are treated as undistorted pinhole images.
-/// Non-pinhole camera models (fisheye, equirectangular) are refused.
+/// Intrinsics and distortion coefficients may be global or per frame (a frame's value wins).
+/// Distorted images are undistorted while they are decoded (to the pinhole camera of the same
+/// `fl_x, fl_y, cx, cy`, as SPEED+ frames are), so rays are cast through the lens:
+/// - `camera_model` absent or one of [`PERSPECTIVE_CAMERA_MODELS`]: OpenCV's standard model,
+///   `k1, k2, k3` radial and `p1, p2` tangential (zero when absent; `k4` is refused);
+/// - `OPENCV_FISHEYE`: the equidistant fisheye `k1..k4` (`p1`, `p2` are refused);
+/// - any other model (equirectangular, omnidirectional, ..) is refused.
+///
+/// Parts of a pinhole view that fall outside the stored image (corners under pincushion
+/// distortion) come out black, as in SPEED+ frames.
 ///
 /// Masks (`mask_path`): any non-zero mask pixel is foreground, as in nerfstudio. Without a mask
 /// path, an image with an alpha channel gets its mask from alpha.
@@ -52,18 +77,7 @@ pub fn parse_nerfstudio(json_path: &Path, text: &str, options: &LoadOptions) -> 
 
 fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
     let json_path = json.path.clone();
-    if let Some(model) = json.root.get("camera_model") {
-        let model = json.string(model, "camera_model")?;
-        if !PERSPECTIVE_CAMERA_MODELS.contains(&model) {
-            return Err(json.field(
-                "camera_model",
-                format!(
-                    "`{model}` is not a pinhole camera model (accepted: {})",
-                    PERSPECTIVE_CAMERA_MODELS.join(", ")
-                ),
-            ));
-        }
-    }
+    let model = lens_model(&json)?;
     let mut jobs = Vec::new();
     let mut frame_intrinsics = Vec::new();
     for (index, frame) in json.frames()?.iter().enumerate() {
@@ -91,6 +105,7 @@ fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
                 ));
             }
         }
+        let distortion = frame_distortion(&json, frame, index, model)?;
         let (name, pose) = json.frame_file_and_pose(frame, index)?;
         let mask = match frame.get("mask_path") {
             Some(value) => {
@@ -104,6 +119,10 @@ fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
             mask,
             pose,
             declared_size: Some((w as u32, h as u32)),
+            lens: distortion.map(|distortion| Lens {
+                intrinsics,
+                distortion,
+            }),
         });
         frame_intrinsics.push(intrinsics);
     }
@@ -135,6 +154,92 @@ fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
         scene_box,
         background: options.background,
     })
+}
+
+/// The lens family of the top-level `camera_model` (absent: perspective, as in nerfstudio).
+fn lens_model(json: &JsonFile) -> Result<LensModel> {
+    let Some(model) = json.root.get("camera_model") else {
+        return Ok(LensModel::Perspective);
+    };
+    match json.string(model, "camera_model")? {
+        model if PERSPECTIVE_CAMERA_MODELS.contains(&model) => Ok(LensModel::Perspective),
+        FISHEYE_CAMERA_MODEL => Ok(LensModel::Fisheye),
+        model => Err(json.field(
+            "camera_model",
+            format!(
+                "`{model}` is not a pinhole or fisheye camera model (accepted: {}, \
+                 {FISHEYE_CAMERA_MODEL})",
+                PERSPECTIVE_CAMERA_MODELS.join(", ")
+            ),
+        )),
+    }
+}
+
+/// Frame `index`'s distortion coefficients under `model` (the frame's own, else the top
+/// level's, else zero), checked; `None` when they are all zero (a pinhole camera).
+fn frame_distortion(
+    json: &JsonFile,
+    frame: &Value,
+    index: usize,
+    model: LensModel,
+) -> Result<Option<Distortion>> {
+    // The field named in messages is the one the value came from.
+    let coefficient = |key: &str| -> Result<(f64, String)> {
+        let (value, field) = match frame.get(key) {
+            Some(value) => (value, format!("frames[{index}].{key}")),
+            None => match json.root.get(key) {
+                Some(value) => (value, key.to_string()),
+                None => return Ok((0.0, key.to_string())),
+            },
+        };
+        let c = json.number(value, &field)?;
+        let limit = if key.starts_with('p') {
+            MAX_TANGENTIAL
+        } else {
+            MAX_RADIAL
+        };
+        if c.abs() > limit {
+            return Err(json.field(
+                field,
+                format!("{c} is not a lens distortion coefficient (|{key}| <= {limit})"),
+            ));
+        }
+        Ok((c, field))
+    };
+    let value = |key: &str| coefficient(key).map(|(c, _)| c as f32);
+    // A coefficient the model has no place for would be silently dropped: refuse it instead.
+    let unused = |key: &str, model: &str| -> Result<()> {
+        match coefficient(key)? {
+            (0.0, _) => Ok(()),
+            (c, field) => Err(json.field(
+                field,
+                format!("{key} = {c} is not a coefficient of the {model} model (`camera_model`)"),
+            )),
+        }
+    };
+    let distortion = match model {
+        LensModel::Perspective => {
+            unused("k4", "OPENCV")?;
+            let k = [
+                value("k1")?,
+                value("k2")?,
+                value("p1")?,
+                value("p2")?,
+                value("k3")?,
+            ];
+            Distortion::Opencv(k)
+        }
+        LensModel::Fisheye => {
+            unused("p1", FISHEYE_CAMERA_MODEL)?;
+            unused("p2", FISHEYE_CAMERA_MODEL)?;
+            Distortion::Fisheye([value("k1")?, value("k2")?, value("k3")?, value("k4")?])
+        }
+    };
+    let coefficients: &[f32] = match &distortion {
+        Distortion::Opencv(k) => k,
+        Distortion::Fisheye(k) => k,
+    };
+    Ok(coefficients.iter().any(|&c| c != 0.0).then_some(distortion))
 }
 
 /// See [`load_nerfstudio`] for why this box.
@@ -301,11 +406,11 @@ mod tests {
         no_focal.as_object_mut().unwrap().remove("fl_y");
         assert!(error_of(load(&no_focal)).contains("field `frames[0].fl_y`: missing"));
 
-        let mut fisheye = base.clone();
-        fisheye["camera_model"] = serde_json::json!("OPENCV_FISHEYE");
+        let mut equirectangular = base.clone();
+        equirectangular["camera_model"] = serde_json::json!("EQUIRECTANGULAR");
         assert!(
-            error_of(load(&fisheye))
-                .contains("field `camera_model`: `OPENCV_FISHEYE` is not a pinhole")
+            error_of(load(&equirectangular))
+                .contains("field `camera_model`: `EQUIRECTANGULAR` is not a pinhole")
         );
 
         let mut wrong_size = base.clone();
@@ -329,5 +434,241 @@ mod tests {
                 serde_json::json!([[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 0]]);
         }
         assert!(error_of(load(&parallel)).contains("add an `aabb` key"));
+    }
+
+    /// The world point the lens tests image, the two cameras (Blender centres, looking at the
+    /// origin) that see it well off their axes, and their pinhole intrinsics.
+    const LENS_POINT: Vec3 = Vec3::new(0.9, -0.8, -0.5);
+    const LENS_CAMERAS: [Vec3; 2] = [Vec3::new(3.0, 0.0, 0.5), Vec3::new(0.5, -3.0, 1.0)];
+    const LENS_SIZE: (u32, u32) = (96, 72);
+    const LENS_INTRINSICS: [f64; 4] = [75.0, 78.0, 47.3, 36.6];
+
+    /// Normalised image coordinates of `point` seen by a camera with the Blender
+    /// camera-to-world `matrix` (rows; the camera looks down -z with y up).
+    fn normalised(matrix: &[Vec<f64>], point: Vec3) -> (f64, f64) {
+        let column = |c: usize| DVec3::new(matrix[0][c], matrix[1][c], matrix[2][c]);
+        let d = point.as_dvec3() - column(3);
+        let depth = -d.dot(column(2));
+        (d.dot(column(0)) / depth, -d.dot(column(1)) / depth)
+    }
+
+    /// A 96x72 capture whose two frames image [`LENS_POINT`] as a blurred dot where `distort`
+    /// (frame index, undistorted normalised x, y -> distorted ones) puts it; `top` holds the
+    /// top-level keys besides the intrinsics, `own` each frame's own keys.
+    fn lens_scene(
+        dir: &Path,
+        top: Value,
+        own: [Value; 2],
+        distort: impl Fn(usize, f64, f64) -> (f64, f64),
+    ) -> Value {
+        std::fs::create_dir_all(dir.join("images")).unwrap();
+        let [fx, fy, cx, cy] = LENS_INTRINSICS;
+        let frames: Vec<Value> = LENS_CAMERAS
+            .iter()
+            .zip(own)
+            .enumerate()
+            .map(|(i, (&centre, own))| {
+                let matrix = look_at_origin(centre);
+                let (x, y) = normalised(&matrix, LENS_POINT);
+                let (xd, yd) = distort(i, x, y);
+                let (u, v) = (fx * xd + cx, fy * yd + cy);
+                let shift = (fx * (xd - x)).hypot(fy * (yd - y));
+                assert!(
+                    shift > 2.0,
+                    "frame {i}: the lens moves the dot only {shift} px"
+                );
+                let image = image::RgbImage::from_fn(LENS_SIZE.0, LENS_SIZE.1, |i, j| {
+                    let (du, dv) = (i as f64 + 0.5 - u, j as f64 + 0.5 - v);
+                    let value = 255.0 * (-(du * du + dv * dv) / (2.0 * 1.2 * 1.2)).exp();
+                    image::Rgb([value.round() as u8; 3])
+                });
+                let file = format!("images/frame_{i:05}.png");
+                image.save(dir.join(&file)).unwrap();
+                let mut frame = serde_json::json!({"file_path": file, "transform_matrix": matrix});
+                frame
+                    .as_object_mut()
+                    .unwrap()
+                    .extend(own.as_object().unwrap().clone());
+                frame
+            })
+            .collect();
+        let mut json = serde_json::json!({
+            "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": LENS_SIZE.0, "h": LENS_SIZE.1,
+            "aabb": [[-1, -1, -1], [1, 1, 1]],
+            "frames": frames,
+        });
+        json.as_object_mut()
+            .unwrap()
+            .extend(top.as_object().unwrap().clone());
+        json
+    }
+
+    /// In every frame, the ray the frame casts through the dot's centre (the centroid of its
+    /// pixels) passes [`LENS_POINT`] within a quarter of the frame's pixel.
+    fn assert_rays_hit_the_point(data: &Dataset) {
+        assert_eq!(data.frames.len(), 2);
+        for frame in &data.frames {
+            let c = &frame.camera;
+            let (mut sum, mut weight) = (glam::DVec2::ZERO, 0.0);
+            for (index, pixel) in frame.pixels.chunks_exact(3).enumerate() {
+                let (i, j) = (index % c.width as usize, index / c.width as usize);
+                let w = pixel[0] as f64;
+                sum += w * glam::DVec2::new(i as f64 + 0.5, j as f64 + 0.5);
+                weight += w;
+            }
+            let dot = sum / weight;
+            let direction = frame.pose.rotation
+                * Vec3::new(
+                    (dot.x as f32 - c.cx) / c.fx,
+                    (dot.y as f32 - c.cy) / c.fy,
+                    1.0,
+                );
+            let d = direction.normalize();
+            let to_point = LENS_POINT - frame.pose.center;
+            let miss = (to_point - d * to_point.dot(d)).length();
+            let miss_px = miss / to_point.dot(d) * c.fx;
+            assert!(
+                miss_px < 0.25,
+                "{}: the ray through the dot at {dot} misses by {miss_px} px",
+                frame.name
+            );
+        }
+    }
+
+    fn load_lens_scene(dir: &Path, json: &Value, size: OutputSize) -> Result<Dataset> {
+        let options = LoadOptions {
+            size,
+            background: [0.0; 3],
+        };
+        load_nerfstudio(&write_json(dir, "transforms.json", json), &options)
+    }
+
+    /// OpenCV's standard model as its documentation writes it (`cv::projectPoints`).
+    fn opencv_distort([k1, k2, k3, p1, p2]: [f64; 5], x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2;
+        (
+            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+        )
+    }
+
+    /// OpenCV's fisheye model as its documentation writes it (`cv::fisheye`).
+    fn fisheye_distort([k1, k2, k3, k4]: [f64; 4], x: f64, y: f64) -> (f64, f64) {
+        let r = (x * x + y * y).sqrt();
+        let theta = r.atan();
+        let theta_d = theta
+            * (1.0
+                + k1 * theta.powi(2)
+                + k2 * theta.powi(4)
+                + k3 * theta.powi(6)
+                + k4 * theta.powi(8));
+        (theta_d / r * x, theta_d / r * y)
+    }
+
+    /// COLMAP's OPENCV model through `ns-process-data`: the stored images are distorted; the
+    /// loaded frames are pinhole views whose rays pass through the imaged point, at the stored
+    /// size and resized, with the top-level coefficients and a frame's own.
+    #[test]
+    fn opencv_distortion_is_undone_so_rays_pass_through_the_point() {
+        let dir = tempfile::tempdir().unwrap();
+        let top = [-0.35, 0.1, 0.02, 0.002, -0.003]; // k1, k2, k3, p1, p2
+        let frame_1 = [-0.5, 0.1, 0.02, -0.004, -0.003]; // its own k1 and p1
+        let json = lens_scene(
+            dir.path(),
+            serde_json::json!({"camera_model": "OPENCV",
+                "k1": top[0], "k2": top[1], "k3": top[2], "p1": top[3], "p2": top[4]}),
+            [
+                serde_json::json!({}),
+                serde_json::json!({"k1": frame_1[0], "p1": frame_1[3]}),
+            ],
+            |i, x, y| opencv_distort([top, frame_1][i], x, y),
+        );
+        let data = load_lens_scene(dir.path(), &json, OutputSize::Original).unwrap();
+        assert_rays_hit_the_point(&data);
+        assert_rays_hit_the_point(
+            &load_lens_scene(dir.path(), &json, OutputSize::MaxSide(64)).unwrap(),
+        );
+        // Without `camera_model`, coefficients mean the same model (as in nerfstudio).
+        let mut no_model = json.clone();
+        no_model.as_object_mut().unwrap().remove("camera_model");
+        let same = load_lens_scene(dir.path(), &no_model, OutputSize::Original).unwrap();
+        assert_eq!(same.frames[1].pixels, data.frames[1].pixels);
+    }
+
+    #[test]
+    fn fisheye_distortion_is_undone_so_rays_pass_through_the_point() {
+        let dir = tempfile::tempdir().unwrap();
+        let top = [-0.05, 0.02, -0.01, 0.004];
+        let frame_1 = [-0.05, -0.03, -0.01, 0.004]; // its own k2
+        let json = lens_scene(
+            dir.path(),
+            serde_json::json!({"camera_model": "OPENCV_FISHEYE",
+                "k1": top[0], "k2": top[1], "k3": top[2], "k4": top[3]}),
+            [serde_json::json!({}), serde_json::json!({"k2": frame_1[1]})],
+            |i, x, y| fisheye_distort([top, frame_1][i], x, y),
+        );
+        assert_rays_hit_the_point(
+            &load_lens_scene(dir.path(), &json, OutputSize::Original).unwrap(),
+        );
+    }
+
+    /// Models without a pinhole view, and coefficients out of any lens's range or outside
+    /// the model, are refused naming the file and the field.
+    #[test]
+    fn unsupported_lens_models_and_coefficients_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let json = lens_scene(
+            dir.path(),
+            serde_json::json!({"camera_model": "OPENCV", "k1": -0.35, "k2": 0.1}),
+            [serde_json::json!({}), serde_json::json!({})],
+            |_, x, y| opencv_distort([-0.35, 0.1, 0.0, 0.0, 0.0], x, y),
+        );
+        let file = dir.path().join("transforms.json").display().to_string();
+        let refused = |change: &dyn Fn(&mut Value), expected: &str| {
+            let mut changed = json.clone();
+            change(&mut changed);
+            let message = error_of(load_lens_scene(dir.path(), &changed, OutputSize::Original));
+            assert!(
+                message.starts_with(&file) && message.contains(expected),
+                "{message}"
+            );
+        };
+        for model in [
+            "EQUIRECTANGULAR",
+            "FULL_OPENCV",
+            "OMNIDIRECTIONALSTEREO_L",
+            "fisheye",
+        ] {
+            refused(
+                &|json| json["camera_model"] = serde_json::json!(model),
+                &format!(
+                    "field `camera_model`: `{model}` is not a pinhole or fisheye camera model"
+                ),
+            );
+        }
+        refused(
+            &|json| json["k1"] = serde_json::json!(-50),
+            "field `k1`: -50 is not a lens distortion coefficient (|k1| <= 10)",
+        );
+        refused(
+            &|json| json["frames"][1]["p2"] = serde_json::json!(3.0),
+            "field `frames[1].p2`: 3 is not a lens distortion coefficient (|p2| <= 1)",
+        );
+        refused(
+            &|json| json["k3"] = serde_json::json!("0.1"),
+            "field `k3`: expected a number",
+        );
+        refused(
+            &|json| json["k4"] = serde_json::json!(0.01),
+            "field `k4`: k4 = 0.01 is not a coefficient of the OPENCV model",
+        );
+        refused(
+            &|json| {
+                json["camera_model"] = serde_json::json!("OPENCV_FISHEYE");
+                json["frames"][0]["p1"] = serde_json::json!(0.001);
+            },
+            "field `frames[0].p1`: p1 = 0.001 is not a coefficient of the OPENCV_FISHEYE model",
+        );
     }
 }

@@ -3,8 +3,9 @@
 //! - [`resample`] (NeRF formats): pixels are turned into values first (compositing alpha on the
 //!   background, say), then a box average when the size shrinks by whole factors (the
 //!   convention NeRF-synthetic results are scored on), a tent filter otherwise;
-//! - [`Resampler`] (SPEED+ / SHIRT): supersampled bilinear lookups through the lens
-//!   distortion, so distorted images come out as pinhole images of any size.
+//! - [`Resampler`] (SPEED+ / SHIRT, distorted nerfstudio frames): supersampled bilinear
+//!   lookups through the lens distortion, so distorted images come out as pinhole images of
+//!   any size.
 //!
 //! Both round to bytes with [`to_byte`].
 
@@ -87,36 +88,84 @@ fn box_downsample<T: Copy, const IN: usize, const OUT: usize>(
     out
 }
 
-/// OpenCV lens distortion `[k1, k2, p1, p2, k3]` (radial k1, k2, k3; tangential p1, p2).
+/// Lens distortion on normalised image coordinates, in OpenCV's two models.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Distortion(pub [f32; 5]);
+pub enum Distortion {
+    /// The standard model `[k1, k2, p1, p2, k3]` (radial k1, k2, k3; tangential p1, p2).
+    Opencv([f32; 5]),
+    /// The equidistant fisheye model of `cv::fisheye`, `[k1, k2, k3, k4]`: a ray at angle
+    /// `theta` off the axis lands at radius `theta (1 + k1 theta^2 + .. + k4 theta^8)`.
+    Fisheye([f32; 4]),
+}
+
+/// Below this radius the fisheye's `theta_d / r` is taken as its limit, 1 (as OpenCV does).
+const FISHEYE_AXIS: f32 = 1e-8;
 
 impl Distortion {
     /// Distort normalised image coordinates `(x, y)` (z = 1).
     pub fn apply(&self, x: f32, y: f32) -> (f32, f32) {
-        let [k1, k2, p1, p2, k3] = self.0;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        (
-            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-        )
+        match *self {
+            Distortion::Opencv([k1, k2, p1, p2, k3]) => {
+                let r2 = x * x + y * y;
+                let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+                (
+                    x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+                )
+            }
+            Distortion::Fisheye(k) => {
+                let r = (x * x + y * y).sqrt();
+                if r < FISHEYE_AXIS {
+                    return (x, y);
+                }
+                // libm, not the platform's: the same image on every target.
+                let theta = libm::atanf(r);
+                let scale = fisheye_radius(k, theta) / r;
+                (x * scale, y * scale)
+            }
+        }
     }
 
-    /// Invert [`Distortion::apply`] by fixed-point iteration (as OpenCV's `undistortPoints`).
+    /// Invert [`Distortion::apply`] as OpenCV's `undistortPoints` does: fixed-point iteration
+    /// (standard model), Newton's method on the angle (fisheye).
     pub fn invert(&self, xd: f32, yd: f32) -> (f32, f32) {
-        let [k1, k2, p1, p2, k3] = self.0;
-        let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            x = (xd - dx) / radial;
-            y = (yd - dy) / radial;
+        match *self {
+            Distortion::Opencv([k1, k2, p1, p2, k3]) => {
+                let (mut x, mut y) = (xd, yd);
+                for _ in 0..20 {
+                    let r2 = x * x + y * y;
+                    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+                    let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+                    let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+                    x = (xd - dx) / radial;
+                    y = (yd - dy) / radial;
+                }
+                (x, y)
+            }
+            Distortion::Fisheye(k @ [k1, k2, k3, k4]) => {
+                let theta_d = (xd * xd + yd * yd).sqrt();
+                if theta_d < FISHEYE_AXIS {
+                    return (xd, yd);
+                }
+                let mut theta = theta_d;
+                for _ in 0..10 {
+                    let t2 = theta * theta;
+                    let slope =
+                        1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)));
+                    theta -= (fisheye_radius(k, theta) - theta_d) / slope;
+                }
+                let scale = libm::tanf(theta) / theta_d;
+                (xd * scale, yd * scale)
+            }
         }
-        (x, y)
     }
+}
+
+/// The fisheye's distorted radius, `theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 +
+/// k4 theta^8)`.
+fn fisheye_radius([k1, k2, k3, k4]: [f32; 4], theta: f32) -> f32 {
+    let t2 = theta * theta;
+    theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
 }
 
 /// Maps stored images (possibly distorted, any size) to pinhole images of the requested size.
@@ -137,8 +186,17 @@ impl Resampler {
         distortion: Option<Distortion>,
         max_side: Option<u32>,
     ) -> Resampler {
-        let (source_width, source_height) = (source.width as u32, source.height as u32);
         let size = max_side.map_or(OutputSize::Original, OutputSize::MaxSide);
+        Resampler::with_size(source, distortion, size)
+    }
+
+    /// A resampler to the frame size `size` asks for.
+    pub(crate) fn with_size(
+        source: Camera,
+        distortion: Option<Distortion>,
+        size: OutputSize,
+    ) -> Resampler {
+        let (source_width, source_height) = (source.width as u32, source.height as u32);
         let (out_width, out_height) = output_size(size, (source_width, source_height));
         let scale_x = out_width as f32 / source_width as f32;
         let scale_y = out_height as f32 / source_height as f32;
@@ -288,6 +346,27 @@ mod tests {
             );
             let scale = expected.0 as f32 / w as f32;
             assert!((output.fx - 50.0 * scale).abs() < 1e-4);
+        }
+    }
+
+    /// The fisheye's inverse undoes it, out to wide angles (the standard model's is checked
+    /// with the SPEED+ camera).
+    #[test]
+    fn the_fisheye_inverse_undoes_the_fisheye() {
+        let lens = Distortion::Fisheye([-0.05, 0.02, -0.01, 0.004]);
+        for (x, y) in [
+            (0.0, 0.0),
+            (1e-9, 0.0),
+            (0.2, -0.1),
+            (-0.6, 0.45),
+            (1.2, 0.9),
+        ] {
+            let (xd, yd) = lens.apply(x, y);
+            let (xu, yu) = lens.invert(xd, yd);
+            assert!(
+                (xu - x).abs() < 1e-5 * (1.0 + x.abs()) && (yu - y).abs() < 1e-5 * (1.0 + y.abs()),
+                "({x}, {y}) -> ({xu}, {yu})"
+            );
         }
     }
 }

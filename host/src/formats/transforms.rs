@@ -16,7 +16,7 @@
 //! Frames are decoded in parallel with rayon; frame order and error reporting stay those of the
 //! JSON file (the first bad frame in file order is the one reported).
 
-use super::resample::{resample, to_byte};
+use super::resample::{Distortion, Resampler, resample, to_byte};
 use crate::dataset::Frame;
 use crate::error::{HostError, Result};
 use image::DynamicImage;
@@ -70,6 +70,15 @@ pub(crate) struct FrameJob {
     pub(crate) pose: Pose,
     /// Size the JSON says the image has, checked against the decoded image.
     pub(crate) declared_size: Option<(u32, u32)>,
+    /// The lens distortion the image was taken through, undone while decoding.
+    pub(crate) lens: Option<Lens>,
+}
+
+/// A distorted frame's pinhole intrinsics (source pixels) and lens distortion.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Lens {
+    pub(crate) intrinsics: Intrinsics,
+    pub(crate) distortion: Distortion,
 }
 
 pub(crate) struct DecodedFrame {
@@ -185,34 +194,48 @@ pub(crate) fn decode_frame(job: &FrameJob, options: &LoadOptions) -> Result<Deco
             ),
         ));
     }
+    // A distorted frame is composited at its own size, then undistorted and resized in one
+    // lookup through its lens (as SPEED+ frames are).
+    let composited_size = if job.lens.is_some() {
+        source_size
+    } else {
+        output_size
+    };
     let has_alpha = image.color().has_alpha();
     let background = options.background;
     // Composite each source pixel as the resampler reads it: [r, g, b, alpha] on the
     // background. 8-bit RGBA (the usual PNG) is read in place, anything else as f32 RGBA.
     let composited = match image.as_rgba8() {
-        Some(rgba) => resample(rgba.as_raw(), source_size, output_size, |p: &[u8; 4]| {
-            composite_pixel(p.map(|v| v as f32 / 255.0), background)
-        }),
+        Some(rgba) => resample(
+            rgba.as_raw(),
+            source_size,
+            composited_size,
+            |p: &[u8; 4]| composite_pixel(p.map(|v| v as f32 / 255.0), background),
+        ),
         None => resample(
             image.to_rgba32f().as_raw(),
             source_size,
-            output_size,
+            composited_size,
             |p: &[f32; 4]| composite_pixel(*p, background),
         ),
     };
     drop(image);
-    let pixels = composited
+    let pixels: Vec<u8> = composited
         .chunks_exact(4)
         .flat_map(|p| [to_u8(p[0]), to_u8(p[1]), to_u8(p[2])])
         .collect();
     let mask = match &job.mask {
-        Some(mask_path) => Some(read_mask(mask_path, source_size, output_size)?),
+        Some(mask_path) => Some(read_mask(mask_path, source_size, composited_size)?),
         None => has_alpha.then(|| {
             composited
                 .chunks_exact(4)
                 .map(|p| foreground(p[3]))
                 .collect()
         }),
+    };
+    let (pixels, mask) = match job.lens {
+        Some(lens) => undistort(&job.image, lens, source_size, options.size, pixels, mask)?,
+        None => (pixels, mask),
     };
     Ok(DecodedFrame {
         source_size,
@@ -221,6 +244,48 @@ pub(crate) fn decode_frame(job: &FrameJob, options: &LoadOptions) -> Result<Deco
         alpha_composited: job.mask.is_none() && has_alpha,
         mask,
     })
+}
+
+/// Undo `lens` on a frame's pixels and mask composited at the source size `(w, h)`, resizing
+/// them to `size` in the same lookup.
+fn undistort(
+    image_path: &Path,
+    lens: Lens,
+    (w, h): (u32, u32),
+    size: OutputSize,
+    pixels: Vec<u8>,
+    mask: Option<Vec<u8>>,
+) -> Result<(Vec<u8>, Option<Vec<u8>>)> {
+    let side = |n: u32| {
+        u16::try_from(n).map_err(|_| {
+            HostError::invalid(
+                image_path,
+                format!("image is {w}x{h}: undistorting takes sides of up to 65535 pixels"),
+            )
+        })
+    };
+    let Intrinsics { fx, fy, cx, cy } = lens.intrinsics;
+    let source = Camera {
+        width: side(w)?,
+        height: side(h)?,
+        fx: fx as f32,
+        fy: fy as f32,
+        cx: cx as f32,
+        cy: cy as f32,
+    };
+    let resampler = Resampler::with_size(source, Some(lens.distortion), size);
+    let wrong_size =
+        || HostError::invalid(image_path, "pixel buffer does not match the image size");
+    let image = image::RgbImage::from_raw(w, h, pixels).ok_or_else(wrong_size)?;
+    let pixels = resampler.rgb(image_path, &image)?;
+    let mask = match mask {
+        Some(mask) => {
+            let mask = image::GrayImage::from_raw(w, h, mask).ok_or_else(wrong_size)?;
+            Some(resampler.mask(image_path, &mask)?)
+        }
+        None => None,
+    };
+    Ok((pixels, mask))
 }
 
 /// Straight-alpha RGBA in [0, 1] composited on `background`: `[r, g, b, alpha]`.
