@@ -1630,3 +1630,113 @@ fn a_gif_named_png_and_a_far_vertex_are_named_for_what_they_are() {
     assert_clear_error("OBJ vertex at 1e30", &result, &["far.obj", "farther than"]);
     assert!(!sim_out.exists());
 }
+
+/// Values no camera has (issue 42, seventh group): a distortion coefficient of -50, a focal
+/// length of 1e9 px, a skewed or projective camera matrix, each refused by `train` naming
+/// `camera.json` and the field; a camera inside the target's stated box refused naming the
+/// frame; label noise of 1e30 degrees in a scene file refused by `simulate`. Nothing written.
+#[test]
+fn camera_values_no_lens_has_are_refused_naming_the_file_and_field() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("bad-camera");
+    let (data, model) = small_training_run(&scratch);
+    let camera = read_json(&data.join("camera.json"));
+    type Edit = fn(&mut serde_json::Value);
+    let cases: [(&str, Edit, &str); 5] = [
+        (
+            "k1 = -50",
+            |c| c["distCoeffs"][0] = serde_json::json!(-50.0),
+            "distCoeffs[0]",
+        ),
+        (
+            "fx = 1e9 px",
+            |c| {
+                c["cameraMatrix"][0][0] = serde_json::json!(1e9);
+                c.as_object_mut().unwrap().remove("fx");
+            },
+            "cameraMatrix[0][0]",
+        ),
+        (
+            "skewed matrix",
+            |c| c["cameraMatrix"][0][1] = serde_json::json!(10.0),
+            "cameraMatrix[0][1]",
+        ),
+        (
+            "projective last row",
+            |c| c["cameraMatrix"][2] = serde_json::json!([0.0, 1.0, 1.0]),
+            "cameraMatrix[2][1]",
+        ),
+        (
+            "a row of two numbers",
+            |c| c["cameraMatrix"][1] = serde_json::json!([0.0, 1.0]),
+            "cameraMatrix[1]",
+        ),
+    ];
+    for (k, (case, edit, field)) in cases.into_iter().enumerate() {
+        let folder = scratch.path(&format!("case{k}"));
+        copy_images_and_camera(&data, &folder);
+        for file in ["labels.json", "truth.json"] {
+            std::fs::copy(data.join(file), folder.join(file)).unwrap();
+        }
+        let mut c = camera.clone();
+        edit(&mut c);
+        std::fs::write(folder.join("camera.json"), c.to_string()).unwrap();
+        let out = scratch.path(&format!("run{k}"));
+        let result = train_small(&folder, &model, &out, &[]);
+        assert_clear_error(case, &result, &["camera.json", field]);
+        assert!(!out.exists(), "{case}: wrote {}", out.display());
+    }
+
+    let out = scratch.path("inside");
+    let result = train_small(
+        &data,
+        &model,
+        &out,
+        &["--scene-box=-100,-100,-100,100,100,100"],
+    );
+    assert_clear_error(
+        "camera inside the box",
+        &result,
+        &["inside", "--scene-box", "frame `img"],
+    );
+    assert!(
+        !out.exists(),
+        "camera inside the box: wrote {}",
+        out.display()
+    );
+
+    let scene = scratch.path("scene.toml");
+    let text = std::fs::read_to_string(data.join("scene.toml")).unwrap();
+    let text = if text.contains("[effects.label_noise]") {
+        text.replacen(
+            "[effects.label_noise]\nrotation_deg = ",
+            "[effects.label_noise]\nrotation_deg = 1e30 # ",
+            1,
+        )
+    } else {
+        format!("{text}\n[effects.label_noise]\nrotation_deg = 1e30\ntranslation_m = 0.01\n")
+    };
+    std::fs::write(&scene, text).unwrap();
+    let out = scratch.path("simulated");
+    let result = orbit_nerf(&[
+        "simulate",
+        "--scene",
+        path_str(&scene),
+        "--out",
+        path_str(&out),
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error(
+        "label noise 1e30 deg",
+        &result,
+        &["scene.toml", "effects.label_noise.rotation_deg"],
+    );
+    assert!(
+        !out.exists(),
+        "label noise 1e30 deg: wrote {}",
+        out.display()
+    );
+}

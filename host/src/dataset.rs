@@ -35,6 +35,9 @@ pub struct Dataset {
     pub scene_box: SceneBoxOrigin,
     /// Colour the images were composited on, in [0, 1].
     pub background: [f32; 3],
+    /// The labels place a target in front of every camera (SPEED+): the scene box is the
+    /// target's, so no camera can be inside it.
+    pub target_centred: bool,
 }
 
 /// Where a dataset's scene box came from.
@@ -157,6 +160,7 @@ mod tests {
             scene_max: [1.0; 3],
             scene_box: SceneBoxOrigin::Unknown,
             background: [0.0; 3],
+            target_centred: false,
         };
         let poses = |n: usize| Some(vec![set("p", 1).frames[0].pose; n]);
         let (merged, truth, train, test) =
@@ -208,6 +212,7 @@ mod tests {
             scene_max: [1.0; 3],
             scene_box: SceneBoxOrigin::Stated("the test".into()),
             background: [1.0, 0.0, 0.5],
+            target_centred: false,
         };
         assert_eq!(dataset.apply_masks(), 1);
         assert_eq!(

@@ -309,7 +309,7 @@ pub fn choose_scene_box(
     let why = match &dataset.scene_box {
         SceneBoxOrigin::Data(what) => format!("from {what}"),
         SceneBoxOrigin::Stated(by) => format!("given by {by}"),
-        SceneBoxOrigin::Found(account) => return Ok(account.clone()),
+        SceneBoxOrigin::Found(account) => account.clone(),
         SceneBoxOrigin::Unknown => {
             let views: Vec<Frame> = frames
                 .iter()
@@ -327,13 +327,39 @@ pub fn choose_scene_box(
             dataset.scene_min = found.min;
             dataset.scene_max = found.max;
             dataset.scene_box = SceneBoxOrigin::Found(found.to_string());
-            return Ok(found.to_string());
+            found.to_string()
         }
     };
-    Ok(format!(
-        "scene box {}, {why}",
-        box_text(dataset.scene_min, dataset.scene_max)
-    ))
+    let account = match &dataset.scene_box {
+        SceneBoxOrigin::Found(_) => why.clone(),
+        _ => format!(
+            "scene box {}, {why}",
+            box_text(dataset.scene_min, dataset.scene_max)
+        ),
+    };
+    if dataset.target_centred {
+        let (min, max) = (Vec3::from(dataset.scene_min), Vec3::from(dataset.scene_max));
+        let inside = frames
+            .iter()
+            .filter_map(|&i| dataset.frames.get(i))
+            .find(|frame| {
+                let c = frame.pose.center;
+                c.cmpge(min).all() && c.cmple(max).all()
+            });
+        if let Some(frame) = inside {
+            let c = frame.pose.center;
+            return Err(HostError::invalid(
+                &dataset.source,
+                format!(
+                    "frame `{}`: its label puts the camera at [{:.3}, {:.3}, {:.3}], inside \
+                     the target's {account}: a camera cannot be inside its target (check the \
+                     label or the box)",
+                    frame.name, c.x, c.y, c.z
+                ),
+            ));
+        }
+    }
+    Ok(account)
 }
 
 /// A box as `[xmin, ymin, zmin] .. [xmax, ymax, zmax]` (millimetre precision).
@@ -742,6 +768,7 @@ mod tests {
             scene_max: [1.0; 3],
             scene_box: origin,
             background: [0.0; 3],
+            target_centred: false,
         };
         let all: Vec<usize> = (0..40).collect();
         let stated = StatedBox {

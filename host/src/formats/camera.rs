@@ -34,6 +34,22 @@ pub struct SpeedCamera {
 const FOCAL_AGREEMENT: f64 = 1e-3;
 const CENTRE_AGREEMENT_PX: f64 = 0.5;
 
+/// The fields of view a pinhole camera has, in degrees: from a telescope's (a 2000 px image
+/// through a 0.1 degree field has a 1.1e6 px focal length) to a wide-angle lens's.
+pub(crate) const FIELD_OF_VIEW_DEG: (f64, f64) = (0.005, 170.0);
+
+/// Why `focal` (pixels) over an image side of `side` pixels is no camera's, if it is not.
+pub(crate) fn focal_problem(focal: f64, side: f64) -> Option<String> {
+    let degrees = 2.0 * (side / (2.0 * focal)).atan().to_degrees();
+    let (min, max) = FIELD_OF_VIEW_DEG;
+    (!(min..=max).contains(&degrees)).then(|| {
+        format!(
+            "{focal} px over {side} px is a field of view of {degrees:.3e} deg; a camera's is \
+             between {min} and {max} deg"
+        )
+    })
+}
+
 /// The file layout of [`SpeedCamera`].
 #[derive(Serialize)]
 struct SpeedCameraFile {
@@ -189,10 +205,32 @@ impl SpeedCamera {
                 [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
             }
         };
+        for (field, focal, side) in [
+            ("cameraMatrix[0][0]", camera_matrix[0][0], width),
+            ("cameraMatrix[1][1]", camera_matrix[1][1], height),
+        ] {
+            if let Some(problem) = focal_problem(focal, side as f64) {
+                return Err(HostError::field(path, field, problem));
+            }
+        }
         let dist_coeffs = match value.get("distCoeffs") {
             Some(coeffs) => json.numbers_exact(coeffs, "distCoeffs")?,
             None => [0.0; 5],
         };
+        for (i, (c, name)) in dist_coeffs
+            .iter()
+            .zip(["k1", "k2", "p1", "p2", "k3"])
+            .enumerate()
+        {
+            let limit = Distortion::limit(name);
+            if c.abs() > limit {
+                return Err(HostError::field(
+                    path,
+                    format!("distCoeffs[{i}]"),
+                    format!("{c} is not a lens distortion coefficient (|{name}| <= {limit})"),
+                ));
+            }
+        }
         let camera = SpeedCamera {
             width,
             height,
@@ -266,7 +304,8 @@ impl SpeedCamera {
     }
 }
 
-/// `cameraMatrix`: 3x3 finite numbers.
+/// `cameraMatrix`: 3x3 finite numbers in the pinhole layout `[[fx, 0, cx], [0, fy, cy], [0, 0,
+/// 1]]` (a skew or a projective last row is no lens this reader can cast rays through).
 fn read_camera_matrix(json: &JsonFile, rows: &Value) -> Result<[[f64; 3]; 3]> {
     let rows = rows
         .as_array()
@@ -275,6 +314,25 @@ fn read_camera_matrix(json: &JsonFile, rows: &Value) -> Result<[[f64; 3]; 3]> {
     let mut matrix = [[0.0; 3]; 3];
     for (r, (out, row)) in matrix.iter_mut().zip(rows).enumerate() {
         *out = json.numbers_exact(row, &format!("cameraMatrix[{r}]"))?;
+    }
+    for (r, c, expected) in [
+        (0, 1, 0.0),
+        (1, 0, 0.0),
+        (2, 0, 0.0),
+        (2, 1, 0.0),
+        (2, 2, 1.0),
+    ] {
+        if matrix[r][c] != expected {
+            return Err(json.field(
+                format!("cameraMatrix[{r}][{c}]"),
+                format!(
+                    "is {}, not {expected}: a pinhole camera matrix is [[fx, 0, cx], [0, fy, \
+                     cy], [0, 0, 1]]{}",
+                    matrix[r][c],
+                    if (r, c) == (0, 1) { " (no skew)" } else { "" }
+                ),
+            ));
+        }
     }
     Ok(matrix)
 }

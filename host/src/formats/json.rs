@@ -1,6 +1,7 @@
 //! JSON files read by the loaders: one parser (which names the field holding a `NaN` that
 //! Python wrote) and field readers whose errors say `file: field \`path\`: reason`.
 
+use super::camera::FIELD_OF_VIEW_DEG;
 use crate::error::{HostError, Result};
 use crate::io::write_atomic;
 use glam::{DMat3, DVec3, Mat3, Quat, Vec3};
@@ -123,13 +124,17 @@ impl JsonFile {
         Ok(number)
     }
 
-    /// A pinhole field of view in radians, in (0, pi).
+    /// A pinhole field of view in radians, within [`FIELD_OF_VIEW_DEG`].
     pub(crate) fn field_of_view(&self, value: &Value, field: &str) -> Result<f64> {
         let angle = self.positive(value, field)?;
-        if angle >= std::f64::consts::PI {
+        let (min, max) = FIELD_OF_VIEW_DEG;
+        if !(min..=max).contains(&angle.to_degrees()) {
             return Err(self.field(
                 field,
-                format!("{angle} rad is not a pinhole field of view (< pi)"),
+                format!(
+                    "{angle} rad is not a pinhole camera's field of view (between {min} and \
+                     {max} deg)"
+                ),
             ));
         }
         Ok(angle)

@@ -74,6 +74,7 @@ fn dataset_of(reader: SyntheticReader, options: &LoadOptions) -> Result<Dataset>
         scene_max: NERF_SYNTHETIC_SCENE_MAX,
         scene_box: SceneBoxOrigin::Data("the NeRF-synthetic convention".into()),
         background: options.background,
+        target_centred: false,
     })
 }
 

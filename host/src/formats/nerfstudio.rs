@@ -3,6 +3,7 @@
 //! `file_path` relative to the JSON's folder, optional `mask_path`, optional scene box (`aabb`
 //! or `scene_box`). Frames are read as in [`super::transforms`].
 
+use super::camera::focal_problem;
 use super::json::JsonFile;
 use super::resample::Distortion;
 use super::transforms::{FrameJob, Intrinsics, Lens, LoadOptions, decode_all};
@@ -24,11 +25,6 @@ const PERSPECTIVE_CAMERA_MODELS: [&str; 5] = [
 
 /// OpenCV's equidistant fisheye model (`cv::fisheye`, coefficients `k1..k4`).
 const FISHEYE_CAMERA_MODEL: &str = "OPENCV_FISHEYE";
-
-/// The largest radial (`k`) and tangential (`p`) coefficients accepted: far beyond any real
-/// lens (COLMAP's fits stay well under 1), so a larger one is a broken calibration.
-const MAX_RADIAL: f64 = 10.0;
-const MAX_TANGENTIAL: f64 = 1.0;
 
 /// The lens family `camera_model` names; its coefficients may differ frame to frame.
 #[derive(Clone, Copy)]
@@ -105,6 +101,11 @@ fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
                 ));
             }
         }
+        for (key, focal, side) in [("fl_x", intrinsics.fx, w), ("fl_y", intrinsics.fy, h)] {
+            if let Some(problem) = focal_problem(focal, side) {
+                return Err(json.field(format!("frames[{index}].{key}"), problem));
+            }
+        }
         let distortion = frame_distortion(&json, frame, index, model)?;
         let (name, pose) = json.frame_file_and_pose(frame, index)?;
         let mask = match frame.get("mask_path") {
@@ -153,6 +154,7 @@ fn dataset_of(json: JsonFile, options: &LoadOptions) -> Result<Dataset> {
         scene_max,
         scene_box,
         background: options.background,
+        target_centred: false,
     })
 }
 
@@ -193,11 +195,7 @@ fn frame_distortion(
             },
         };
         let c = json.number(value, &field)?;
-        let limit = if key.starts_with('p') {
-            MAX_TANGENTIAL
-        } else {
-            MAX_RADIAL
-        };
+        let limit = Distortion::limit(key);
         if c.abs() > limit {
             return Err(json.field(
                 field,

@@ -102,6 +102,21 @@ pub enum Distortion {
 const FISHEYE_AXIS: f32 = 1e-8;
 
 impl Distortion {
+    /// The largest radial (`k`) and tangential (`p`) coefficient accepted: far beyond any real
+    /// lens (COLMAP's and OpenCV's fits stay well under 1), so a larger one is a broken
+    /// calibration.
+    pub const MAX_RADIAL: f64 = 10.0;
+    pub const MAX_TANGENTIAL: f64 = 1.0;
+
+    /// The bound of the coefficient named `name` (`k1`.., `p1`, `p2`).
+    pub fn limit(name: &str) -> f64 {
+        if name.starts_with('p') {
+            Self::MAX_TANGENTIAL
+        } else {
+            Self::MAX_RADIAL
+        }
+    }
+
     /// Distort normalised image coordinates `(x, y)` (z = 1).
     pub fn apply(&self, x: f32, y: f32) -> (f32, f32) {
         match *self {

@@ -400,6 +400,7 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
             scene_max,
             scene_box,
             background: [0.0; 3],
+            target_centred: true,
         },
         labels,
         truth: reader.truth,

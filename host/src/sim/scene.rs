@@ -752,15 +752,16 @@ impl Effects {
             )?;
         }
         if let Some(labels) = &self.label_noise {
+            // A sigma beyond a half turn or beyond the farthest camera is no label's noise.
             ensure(
-                labels.rotation_deg >= 0.0,
+                (0.0..=180.0).contains(&labels.rotation_deg),
                 "effects.label_noise.rotation_deg",
-                "must be >= 0",
+                "must be in 0..=180 (degrees, 1 sigma)",
             )?;
             ensure(
-                labels.translation_m >= 0.0,
+                (0.0..=MAX_DISTANCE_M).contains(&labels.translation_m),
                 "effects.label_noise.translation_m",
-                "must be >= 0",
+                &format!("must be in 0..={MAX_DISTANCE_M} (metres, 1 sigma)"),
             )?;
         }
         Ok(())

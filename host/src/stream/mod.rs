@@ -473,6 +473,7 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
             scene_max: trainer.config().aabb_max,
             scene_box: SceneBoxOrigin::Stated("the stream's config".into()),
             background: info.background,
+            target_centred: false,
         };
         let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, false, None)?;
         per_view.extend(scores.iter().map(|s| s.metrics));
