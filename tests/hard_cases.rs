@@ -1740,3 +1740,172 @@ fn camera_values_no_lens_has_are_refused_naming_the_file_and_field() {
         out.display()
     );
 }
+
+/// Every file below `dir` with its bytes, in path order: what a refused command must leave as
+/// it was.
+fn folder_bytes(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut files = Vec::new();
+    let mut pending = vec![dir.to_path_buf()];
+    while let Some(folder) = pending.pop() {
+        for entry in std::fs::read_dir(&folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                pending.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                files.push((path, bytes));
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
+/// A sweep of one tiny task (4 steps of the tiny profile on 8 simulated frames of 32 px).
+const ONE_TASK_SWEEP: &str = "scene = \"synthetic\"\nframes = 8\nsize = 32\nconfig = \"tiny\"\nsteps = 4\nholdout = 4\nfit_steps = 2\n\n[[variants]]\nname = \"baseline\"\nset = { embedding_dim = 0 }\n";
+
+/// Results reused from a different description (issue 42, third group): a finished task whose
+/// record was made with other settings than the description now asks (other steps, another
+/// config field) is refused by `sweep run` and `sweep collect`, naming the record file and the
+/// field, and nothing in the folder changes (was: skipped as finished, and the merged table
+/// said "6 steps per model" over 4-step models). `collect` on a folder that does not exist says
+/// so (was: "their logs: .../log.txt", files that do not exist either).
+#[test]
+fn sweep_results_of_another_description_are_refused_not_reused() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("sweep-reuse");
+    let description = scratch.path("sweep.toml");
+    std::fs::write(&description, ONE_TASK_SWEEP).unwrap();
+    let out = scratch.path("out");
+    let sweep = |command: &str, description: &Path, out: &Path| {
+        let mut command = orbit_nerf(&["sweep", command, path_str(description)]);
+        command.args(["--out", path_str(out)]);
+        if command.get_args().any(|a| a == "run") {
+            command.args(["--jobs", "1"]);
+        }
+        command.output().unwrap()
+    };
+    let result = sweep("run", &description, &out);
+    assert!(result.status.success(), "{}", text(&result));
+    let record = out.join("tasks/0/result.json");
+    assert!(record.is_file());
+    let before = folder_bytes(&out);
+
+    for (name, from, to, field) in [
+        ("steps.toml", "steps = 4", "steps = 6", "steps"),
+        (
+            "features.toml",
+            "embedding_dim = 0 }",
+            "embedding_dim = 0, features = 16 }",
+            "settings.config.features",
+        ),
+        (
+            "holdout.toml",
+            "holdout = 4",
+            "holdout = 2",
+            "settings.holdout",
+        ),
+    ] {
+        let other = scratch.path(name);
+        std::fs::write(&other, ONE_TASK_SWEEP.replace(from, to)).unwrap();
+        for command in ["run", "collect"] {
+            let case = format!("sweep {command} {name} over sweep.toml's results");
+            let result = sweep(command, &other, &out);
+            assert_clear_error(
+                &case,
+                &result,
+                &[
+                    path_str(&record),
+                    &format!("field `{field}`"),
+                    path_str(&other),
+                    "another --out",
+                ],
+            );
+            assert!(!text(&result).contains("steps per model"), "{case}");
+            assert_eq!(folder_bytes(&out), before, "{case}: the folder changed");
+        }
+    }
+    // The description the records were made with still collects them.
+    let result = sweep("collect", &description, &out);
+    assert!(result.status.success(), "{}", text(&result));
+
+    let missing = scratch.path("no-such-run");
+    let result = sweep("collect", &description, &missing);
+    assert_clear_error(
+        "sweep collect on a missing folder",
+        &result,
+        &[path_str(&missing), "no such folder"],
+    );
+    assert!(!text(&result).contains("log.txt"), "{}", text(&result));
+    assert!(!missing.exists());
+}
+
+/// `tradeoff --vary size=N` above the data's images (issue 42, eighth group): frames are never
+/// upsampled, so the variant would silently repeat the reference. Refused before anything is
+/// trained or written, naming the flag, the value and the data's size; the same size of a
+/// variant in a sweep description is refused naming the field; the default knobs leave such a
+/// size out.
+#[test]
+fn tradeoff_sizes_above_the_datas_images_are_refused_before_training() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("tradeoff-size");
+    let data = scratch.path("data");
+    common::simulated_lightbox(&data, 8, 32);
+    // An earlier folder of the user's at --out: left as it was.
+    let out = scratch.path("out");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("notes.txt"), b"the user's own file").unwrap();
+    let before = folder_bytes(&out);
+    let tradeoff = |extra: &[&str], out: &Path| {
+        orbit_nerf(&["tradeoff", "--data", path_str(&data), "--size", "32"])
+            .args(["--steps", "2", "--out", path_str(out)])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let result = tradeoff(&["--vary", "size=16,64"], &out);
+    assert_clear_error(
+        "tradeoff --vary size=64 on 32 px data",
+        &result,
+        &["--vary size=16,64", "64 px", "32 px", path_str(&data)],
+    );
+    assert_eq!(folder_bytes(&out), before);
+
+    let description = scratch.path("sweep.toml");
+    std::fs::write(
+        &description,
+        format!(
+            "data = \"{}\"\nsize = 32\nconfig = \"tiny\"\nsteps = 2\nholdout = 4\n\n[[variants]]\nname = \"reference\"\n\n[[variants]]\nname = \"size=64\"\nsize = 64\n",
+            data.display()
+        ),
+    )
+    .unwrap();
+    let result = orbit_nerf(&[
+        "sweep",
+        "run",
+        path_str(&description),
+        "--out",
+        path_str(&out),
+    ])
+    .output()
+    .unwrap();
+    assert_clear_error(
+        "a sweep variant of 64 px on 32 px data",
+        &result,
+        &[path_str(&description), "field `variants[1].size`", "32 px"],
+    );
+    assert_eq!(folder_bytes(&out), before);
+
+    let written = scratch.path("written");
+    let result = tradeoff(&["--write-only"], &written);
+    assert!(result.status.success(), "{}", text(&result));
+    let toml = std::fs::read_to_string(written.join("tradeoff.toml")).unwrap();
+    assert!(
+        toml.contains("name = \"size=16\"") && !toml.contains("name = \"size=64\""),
+        "{toml}"
+    );
+}

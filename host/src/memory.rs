@@ -103,6 +103,16 @@ pub fn dataset_parts(folder: &Path, max_side: Option<u32>) -> [Part; 2] {
     [("images loaded", loaded), ("image being decoded", largest)]
 }
 
+/// The longer side of the largest image below the dataset folder `folder` (from the image
+/// headers, nothing decoded; `None` when no image is readable): a larger size gives the same
+/// frames, as images are never upsampled.
+pub fn largest_image_side(folder: &Path) -> Option<u32> {
+    (image_files(folder, IMAGE_SEARCH_DEPTH).iter())
+        .filter_map(|path| image::image_dimensions(path).ok())
+        .map(|(w, h)| w.max(h))
+        .max()
+}
+
 /// PNG and JPEG files below `dir`, `depth` folder levels deep at most.
 fn image_files(dir: &Path, depth: usize) -> Vec<std::path::PathBuf> {
     let Ok(entries) = std::fs::read_dir(dir) else {
@@ -179,6 +189,8 @@ mod tests {
                 ("image being decoded", decoding)
             ]
         );
+        assert_eq!(largest_image_side(dir.path()), Some(64));
+        assert_eq!(largest_image_side(&dir.path().join("none")), None);
     }
 
     #[test]

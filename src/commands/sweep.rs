@@ -10,8 +10,8 @@ use orbit_nerf_host::dataset::split_every;
 use orbit_nerf_host::error::HostError;
 use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
 use orbit_nerf_host::sweep::results::{
-    self, CHECKPOINT, CurveRecord, LOG, PROGRESS, RENDER, TaskResult, TaskTiming, array_spec,
-    fnv1a, read_result, task_dir, unfinished, write_timing,
+    self, CHECKPOINT, CurveRecord, LOG, PROGRESS, RENDER, TaskResult, TaskSettings, TaskTiming,
+    array_spec, fnv1a, read_result, task_dir, unfinished, write_timing,
 };
 use orbit_nerf_host::sweep::slurm::{self, Resources};
 use orbit_nerf_host::sweep::{Source, Sweep, Task};
@@ -189,7 +189,7 @@ fn run_task(
         .into());
     };
     check_output_folder(out)?;
-    if read_result(out, task)?.is_some() {
+    if read_result(&sweep, out, task)?.is_some() {
         println!(
             "task {index} ({}) finished earlier: nothing to do",
             task.name
@@ -325,6 +325,7 @@ fn train_and_score(
         metrics_aligned: Some(result.metrics_aligned.into()),
         pose_uncertainty: result.pose_uncertainty,
         checkpoint_fnv1a: format!("{:016x}", fnv1a(&bytes)),
+        settings: Some(TaskSettings::of(sweep, task)),
     };
     let timing = TaskTiming {
         index: task.index,
@@ -365,7 +366,7 @@ pub(super) fn run_local(
                 while let Some(&index) = pending.get(next.fetch_add(1, Ordering::SeqCst)) {
                     let task = &sweep.tasks[index];
                     let outcome = run_child(&exe, description, out, index, threads);
-                    let outcome = outcome.and_then(|()| match read_result(out, task) {
+                    let outcome = outcome.and_then(|()| match read_result(&sweep, out, task) {
                         Ok(Some(_)) => Ok(()),
                         Ok(None) => Err("it wrote no result".to_string()),
                         Err(e) => Err(e.to_string()),

@@ -9,8 +9,8 @@ use super::sweep::run_local;
 use super::{FIT_STEPS, Fallible, config_for_data, preset_config, preset_parser};
 use orbit_nerf_host::io::{check_output_folder, write_atomic};
 use orbit_nerf_host::presets;
-use orbit_nerf_host::sweep::Sweep;
 use orbit_nerf_host::sweep::tradeoff::{Knob, default_knobs, parse_vary};
+use orbit_nerf_host::sweep::{Sweep, above_data_side, data_image_side};
 use orbit_nerf_host::train::with_overrides;
 use std::path::{Path, PathBuf};
 
@@ -40,8 +40,9 @@ pub struct TradeoffArgs {
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     steps: Option<u32>,
     /// A knob and its values, one variant each: a config field (`features=8,32`,
-    /// `resolutions=[16,32,64,0]`, `texel_update=stochastic_rounding`) or `size=64,256`.
-    /// Repeat for more knobs. Default: every built-in knob one step to either side.
+    /// `resolutions=[16,32,64,0]`, `texel_update=stochastic_rounding`) or `size=64,256` (with
+    /// --data at most its images' size: frames are never upsampled). Repeat for more knobs.
+    /// Default: every built-in knob one step to either side (sizes above the data's left out).
     #[arg(long, value_name = "KNOB=V1,V2")]
     vary: Vec<String>,
     /// Steps after which the held-out views are also scored (default: 1/16, 1/8, 1/4, 1/2 and
@@ -200,8 +201,17 @@ fn description(args: &TradeoffArgs) -> Fallible<String> {
     anytime.insert("budgets_s".into(), args.budgets.clone().into());
     table.insert("anytime".into(), anytime.into());
 
+    // Frames are never upsampled: a size above the data's images repeats a smaller one.
+    // (The image headers are read once, when a knob sets a size.)
+    let side = std::cell::OnceCell::new();
+    let above_data = |size: u32| -> Option<String> {
+        let data = args.data.as_deref()?;
+        above_data_side(size, *side.get_or_init(|| data_image_side(data)), data)
+    };
     let knobs = if args.vary.is_empty() {
-        default_knobs(&base, args.size)
+        let mut knobs = default_knobs(&base, args.size);
+        knobs.retain(|k| k.size.is_none_or(|s| above_data(s).is_none()));
+        knobs
     } else {
         let mut knobs = Vec::new();
         for flag in &args.vary {
@@ -212,6 +222,9 @@ fn description(args: &TradeoffArgs) -> Fallible<String> {
                 let origin = PathBuf::from(format!("--vary {flag}"));
                 if knob.size.is_none() {
                     with_overrides(&origin, "", &base, &knob.set)?;
+                }
+                if let Some(why) = knob.size.and_then(above_data) {
+                    return Err(format!("--vary {flag}: {why}").into());
                 }
                 knobs.push(knob);
             }

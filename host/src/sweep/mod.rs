@@ -21,7 +21,8 @@
 //! [[variants]]                 # optional: default baseline, ours, ours + pose
 //! name = "ours"                #   (with noise levels: ours, ours + pose)
 //! set = { embedding_dim = 32, pose_correction = false }
-//! size = 64                    # optional: this variant's image size (default `size`)
+//! size = 64                    # optional: this variant's image size (default `size`; with
+//!                              #   `data`, at most its images': never upsampled)
 //!
 //! [anytime]                    # optional: what accuracy costs in time (`tradeoff`)
 //! steps = [250, 500, 1000]     # held-out views also scored after these steps
@@ -413,6 +414,8 @@ impl SweepDescription {
             .map(|a| check_anytime(origin, a))
             .transpose()?;
         let mut configs: Vec<(String, Config, u16)> = Vec::new();
+        // The longer side of the data's images, read when a variant sets its own size.
+        let mut data_side: Option<Option<u32>> = None;
         for (i, variant) in variants.iter().enumerate() {
             let name = variant.name.trim();
             if name.is_empty()
@@ -442,6 +445,13 @@ impl SweepDescription {
                     &format!("variants[{i}].size"),
                     format!("{variant_size} is not between 8 and {MAX_SIZE} px"),
                 ));
+            }
+            // A size of its own above the data's images would train the same frames again.
+            if let (Some(variant_size), Source::Data(data)) = (variant.size, &source) {
+                let side = *data_side.get_or_insert_with(|| data_image_side(data));
+                if let Some(why) = above_data_side(variant_size, side, data) {
+                    return Err(field(&format!("variants[{i}].size"), why));
+                }
             }
             configs.push((name.to_string(), config, variant_size as u16));
         }
@@ -547,6 +557,22 @@ impl SweepDescription {
         let config = crate::train::read_config(&path, &preset_config()?)?;
         Ok((config, Some(path)))
     }
+}
+
+/// The longer side of the largest image of the dataset folder `data` (from the headers; `None`
+/// when none is readable): a larger image size gives the same frames, never upsampled.
+pub fn data_image_side(data: &Path) -> Option<u32> {
+    crate::memory::largest_image_side(data)
+}
+
+/// Why `size` px cannot be asked of the dataset folder `data` whose images are at most `side`
+/// px on their longer side (`None`: it can, or the side is unknown, which the loader names).
+pub fn above_data_side(size: u32, side: Option<u32>, data: &Path) -> Option<String> {
+    let side = side.filter(|&side| size > side)?;
+    Some(format!(
+        "{size} px is above the data's images ({side} px, {}): frames are never upsampled, so it would train on the {side} px frames again (a repeat of a smaller size); give at most {side}",
+        data.display()
+    ))
 }
 
 /// The paper's models as variants: with noise levels the two the pose-noise sweeps compare,
@@ -937,6 +963,35 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
                 "{error}"
             );
         }
+    }
+
+    #[test]
+    fn a_variant_size_above_the_datas_images_is_refused() {
+        let (dir, _) = read("");
+        std::fs::create_dir(dir.path().join("frames")).unwrap();
+        image::RgbImage::new(40, 20)
+            .save(dir.path().join("frames/a.png"))
+            .unwrap();
+        let path = dir.path().join("sweep.toml");
+        let with_size = |size: u32| {
+            std::fs::write(
+                &path,
+                format!("data = \"frames\"\n[[variants]]\nname = \"a\"\nsize = {size}\n"),
+            )
+            .unwrap();
+            Sweep::read(&path)
+        };
+        assert_eq!(with_size(40).unwrap().tasks[0].size, 40);
+        let error = with_size(41).unwrap_err().to_string();
+        assert!(
+            error.starts_with(&path.display().to_string())
+                && error.contains("field `variants[0].size`")
+                && error.contains("41 px is above the data's images (40 px"),
+            "{error}"
+        );
+        // The sweep's own size (128 by default) is the longest side asked, not refused.
+        std::fs::write(&path, "data = \"frames\"\nsize = 256\n").unwrap();
+        assert!(Sweep::read(&path).is_ok());
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! the merged tables and figures (`sweep.csv`, `sweep.md`, `renders.png`, with noise levels
 //! the pose-noise sections and plots, with `[anytime]` the trade-off report). `result.json`
 //! holds nothing of where or how a task ran (no path, no thread count, no time), so a task
-//! gives the same bytes locally and on a cluster; `timing.json` holds the times.
+//! gives the same bytes locally and on a cluster; `timing.json` holds the times. A record also
+//! keeps the task's settings ([`TaskSettings`]): a record made with settings other than the
+//! description asks of its task is refused wherever records are read ([`read_result`]).
 
 use super::{Source, Sweep, Task};
 use crate::error::{HostError, Result};
@@ -73,6 +75,190 @@ pub struct TaskResult {
     pub pose_uncertainty: Option<PoseUncertainty>,
     /// FNV-1a (64 bit) of the checkpoint file's bytes, hex.
     pub checkpoint_fnv1a: String,
+    /// What the description asked of the task (absent in records written before they were
+    /// kept): a finished task is reused only by a description that asks the same.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub settings: Option<TaskSettings>,
+}
+
+/// The settings a task was trained and scored with, as its record keeps them. No path (a data
+/// folder or scene file is kept by its name), so a task still gives the same bytes locally and
+/// on a cluster.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskSettings {
+    /// `scene <preset or scene file name>` or `data <folder name>`.
+    pub source: String,
+    /// Frames simulated (a simulated scene only).
+    pub frames: Option<u32>,
+    pub holdout: usize,
+    pub fit_steps: u32,
+    pub masks: bool,
+    /// The description's `scene_box` (min, max), when it gives one.
+    pub scene_box: Option<[[f32; 3]; 2]>,
+    /// Every field of the task's config, as a config file names it.
+    pub config: serde_json::Map<String, serde_json::Value>,
+}
+
+impl TaskSettings {
+    /// What `sweep` asks of `task`.
+    pub fn of(sweep: &Sweep, task: &Task) -> TaskSettings {
+        let name = |p: &Path| {
+            p.file_name()
+                .map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into())
+        };
+        let (source, frames) = match &sweep.source {
+            Source::Scene(scene) => {
+                let preset = crate::sim::scene::preset_names().any(|p| p == scene);
+                let scene = if preset {
+                    scene.clone()
+                } else {
+                    name(Path::new(scene))
+                };
+                (format!("scene {scene}"), Some(sweep.frames))
+            }
+            Source::Data(data) => (format!("data {}", name(data)), None),
+        };
+        TaskSettings {
+            source,
+            frames,
+            holdout: sweep.holdout,
+            fit_steps: sweep.fit_steps,
+            masks: sweep.masks,
+            scene_box: sweep.scene_box.map(|(min, max)| [min, max]),
+            config: config_fields(&task.config),
+        }
+    }
+}
+
+/// The config's fields as the record's JSON holds them (through the text, so that a field
+/// read back from a record compares equal).
+fn config_fields(config: &orbit_nerf_core::Config) -> serde_json::Map<String, serde_json::Value> {
+    serde_json::to_string(config)
+        .ok()
+        .and_then(|text| serde_json::from_str(&text).ok())
+        .unwrap_or_default()
+}
+
+/// Where a record differs from what the description asks of its task: `(field of the record,
+/// recorded, asked)`. Records written before the settings were kept are compared on the fields
+/// they hold.
+pub fn differences(
+    sweep: &Sweep,
+    task: &Task,
+    record: &TaskResult,
+) -> Vec<(String, String, String)> {
+    let mut found = Vec::new();
+    let mut differ = |field: &str, recorded: String, asked: String| {
+        if recorded != asked {
+            found.push((field.to_string(), recorded, asked));
+        }
+    };
+    differ("variant", record.variant.clone(), task.variant.clone());
+    differ("seed", record.seed.to_string(), task.seed.to_string());
+    let (rotation_deg, translation_m) = task
+        .noise
+        .map_or((0.0, 0.0), |n| (n.rotation_deg, n.translation_m));
+    differ(
+        "rotation_noise_deg",
+        record.rotation_noise_deg.to_string(),
+        rotation_deg.to_string(),
+    );
+    differ(
+        "translation_noise_mm",
+        record.translation_noise_mm.to_string(),
+        (translation_m * 1000.0).to_string(),
+    );
+    differ(
+        "steps",
+        record.steps.to_string(),
+        task.config.steps.to_string(),
+    );
+    // Older records hold no size (0).
+    if record.size != 0 {
+        differ("size", record.size.to_string(), task.size.to_string());
+    }
+    if !record.curve.is_empty() {
+        let asked: Vec<u32> = (sweep.score_at(task).into_iter())
+            .chain([task.config.steps])
+            .collect();
+        let recorded: Vec<u32> = record.curve.iter().map(|p| p.step).collect();
+        differ(
+            "curve[].step",
+            format!("{recorded:?}"),
+            format!("{asked:?}"),
+        );
+    }
+    if let Some(settings) = &record.settings {
+        let asked = TaskSettings::of(sweep, task);
+        differ(
+            "settings.source",
+            settings.source.clone(),
+            asked.source.clone(),
+        );
+        let frames = |f: Option<u32>| f.map_or("none".into(), |f| f.to_string());
+        differ(
+            "settings.frames",
+            frames(settings.frames),
+            frames(asked.frames),
+        );
+        differ(
+            "settings.holdout",
+            settings.holdout.to_string(),
+            asked.holdout.to_string(),
+        );
+        differ(
+            "settings.fit_steps",
+            settings.fit_steps.to_string(),
+            asked.fit_steps.to_string(),
+        );
+        differ(
+            "settings.masks",
+            settings.masks.to_string(),
+            asked.masks.to_string(),
+        );
+        let scene_box = |b: Option<[[f32; 3]; 2]>| b.map_or("none".into(), |b| format!("{b:?}"));
+        differ(
+            "settings.scene_box",
+            scene_box(settings.scene_box),
+            scene_box(asked.scene_box),
+        );
+        let keys: std::collections::BTreeSet<&String> =
+            settings.config.keys().chain(asked.config.keys()).collect();
+        let value = |v: Option<&serde_json::Value>| v.map_or("none".into(), |v| v.to_string());
+        for key in keys {
+            differ(
+                &format!("settings.config.{key}"),
+                value(settings.config.get(key)),
+                value(asked.config.get(key)),
+            );
+        }
+    }
+    found
+}
+
+/// Refuse a record `differences` finds differing from what `sweep` asks of `task`: the error
+/// names the record file and every differing field.
+fn check_settings(path: &Path, sweep: &Sweep, task: &Task, record: &TaskResult) -> Result<()> {
+    let found = differences(sweep, task, record);
+    let Some((field, recorded, asked)) = found.first() else {
+        return Ok(());
+    };
+    let description = sweep.origin.display();
+    let mut reason = format!(
+        "recorded {recorded}, but {description} asks {asked} of task {} ({})",
+        task.index, task.name
+    );
+    if found.len() > 1 {
+        let others: Vec<String> = (found[1..].iter())
+            .map(|(f, r, a)| format!("`{f}` ({r}, not {a})"))
+            .collect();
+        reason.push_str(&format!("; also {}", others.join(", ")));
+    }
+    reason.push_str(&format!(
+        ". The folder holds another description's results, which are neither mixed in nor replaced: give {description} another --out (or run the description these records were made with)"
+    ));
+    Err(HostError::field(path, field.clone(), reason))
 }
 
 /// A point of a task's anytime curve: the held-out means after `step` steps.
@@ -244,9 +430,10 @@ pub fn read_timing(out: &Path, task: &Task, result: &TaskResult) -> Result<TaskT
     Ok(timing)
 }
 
-/// Task `task`'s record under `out`, `None` when the task has not finished; an error when the
-/// record is unreadable or belongs to another task (another description wrote into `out`).
-pub fn read_result(out: &Path, task: &Task) -> Result<Option<TaskResult>> {
+/// Task `task` of `sweep`: its record under `out`, `None` when the task has not finished; an
+/// error when the record is unreadable, belongs to another task or was made with other
+/// settings than `sweep` asks of the task (another description wrote into `out`).
+pub fn read_result(sweep: &Sweep, out: &Path, task: &Task) -> Result<Option<TaskResult>> {
     let path = task_dir(out, task.index).join(RESULT);
     let text = match std::fs::read_to_string(&path) {
         Ok(text) => text,
@@ -264,6 +451,7 @@ pub fn read_result(out: &Path, task: &Task) -> Result<Option<TaskResult>> {
             ),
         ));
     }
+    check_settings(&path, sweep, task, &result)?;
     Ok(Some(result))
 }
 
@@ -271,7 +459,7 @@ pub fn read_result(out: &Path, task: &Task) -> Result<Option<TaskResult>> {
 pub fn unfinished(sweep: &Sweep, out: &Path) -> Result<Vec<usize>> {
     let mut missing = Vec::new();
     for task in &sweep.tasks {
-        if read_result(out, task)?.is_none() {
+        if read_result(sweep, out, task)?.is_none() {
             missing.push(task.index);
         }
     }
@@ -282,26 +470,48 @@ pub fn unfinished(sweep: &Sweep, out: &Path) -> Result<Vec<usize>> {
 /// with noise levels the pose-noise sections and their plots); returns the markdown. Errors
 /// naming the unfinished tasks and their logs when any is.
 pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
+    if !out.is_dir() {
+        let what = if out.exists() {
+            "is not a folder"
+        } else {
+            "no such folder"
+        };
+        return Err(HostError::invalid(
+            out,
+            format!(
+                "{what}: there is no sweep to collect here; run {} into it first (`orbit-nerf sweep run` or `sweep slurm` with this --out)",
+                sweep.origin.display()
+            ),
+        ));
+    }
     let mut results = Vec::new();
     let mut missing = Vec::new();
     for task in &sweep.tasks {
-        match read_result(out, task)? {
+        match read_result(sweep, out, task)? {
             Some(result) => results.push(result),
             None => missing.push(task.index),
         }
     }
     if !missing.is_empty() {
-        let logs: Vec<String> = (missing.iter().take(5))
-            .map(|&i| task_dir(out, i).join(LOG).display().to_string())
+        // Only the logs that exist: a task never started has none.
+        let logs: Vec<String> = (missing.iter())
+            .map(|&i| task_dir(out, i).join(LOG))
+            .filter(|log| log.is_file())
+            .take(5)
+            .map(|log| log.display().to_string())
             .collect();
+        let logs = if logs.is_empty() {
+            "none of them has a log (never started)".to_string()
+        } else {
+            format!("their logs: {}", logs.join(", "))
+        };
         return Err(HostError::invalid(
             out,
             format!(
-                "{} of {} tasks have no result (indices {}); their logs: {}",
+                "{} of {} tasks have no result (indices {}); {logs}",
                 missing.len(),
                 sweep.tasks.len(),
                 array_spec(&missing),
-                logs.join(", ")
             ),
         ));
     }
@@ -653,6 +863,154 @@ mod tests {
         let loaded = ViewMetrics::from(back);
         assert!(loaded.ssim_full.is_nan() && loaded.jnb_right.is_nan());
         assert_eq!(loaded.psnr_full, 29.25);
+    }
+
+    /// A sweep of one task from `text`, with `description` as its file name.
+    fn sweep_of(dir: &Path, text: &str) -> Sweep {
+        Sweep::parse(&dir.join("sweep.toml"), text).unwrap()
+    }
+
+    /// The record `sweep`'s first task writes (its figures left out).
+    fn record_of(sweep: &Sweep) -> TaskResult {
+        let task = &sweep.tasks[0];
+        let none = Metrics {
+            psnr_full: None,
+            psnr_right: None,
+            psnr_foreground: None,
+            psnr_foreground_right: None,
+            ssim_full: None,
+            ssim_right: None,
+            jnb_full: None,
+            jnb_right: None,
+            cpbd_full: None,
+        };
+        TaskResult {
+            index: task.index,
+            name: task.name.clone(),
+            variant: task.variant.clone(),
+            seed: task.seed,
+            rotation_noise_deg: 0.0,
+            translation_noise_mm: 0.0,
+            steps: task.config.steps,
+            held_out_views: 2,
+            metrics: none,
+            curve: (sweep.score_at(task).into_iter())
+                .chain([task.config.steps])
+                .map(|step| CurveRecord {
+                    step,
+                    metrics: none,
+                })
+                .collect(),
+            size: task.size,
+            arena_bytes: 0,
+            samples: 0,
+            pose_before: None,
+            pose_after: None,
+            metrics_exact: None,
+            metrics_aligned: None,
+            pose_uncertainty: None,
+            checkpoint_fnv1a: "0".into(),
+            settings: Some(TaskSettings::of(sweep, task)),
+        }
+    }
+
+    const ONE_TASK: &str = "scene = \"synthetic\"\nframes = 8\nsize = 32\nconfig = \"tiny\"\nsteps = 4\nholdout = 4\n[[variants]]\nname = \"a\"\nset = { embedding_dim = 0 }\n";
+
+    #[test]
+    fn a_record_made_with_other_settings_is_refused_naming_the_file_and_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let sweep = sweep_of(dir.path(), ONE_TASK);
+        std::fs::create_dir_all(task_dir(&out, 0)).unwrap();
+        write_result(&out, &record_of(&sweep)).unwrap();
+        let path = task_dir(&out, 0).join(RESULT);
+        let before = std::fs::read(&path).unwrap();
+        let task = &sweep.tasks[0];
+        assert_eq!(
+            read_result(&sweep, &out, task).unwrap(),
+            Some(record_of(&sweep))
+        );
+        for (change, field) in [
+            (("steps = 4", "steps = 6"), "steps"),
+            (("size = 32", "size = 48"), "size"),
+            (("holdout = 4", "holdout = 2"), "settings.holdout"),
+            (("frames = 8", "frames = 16"), "settings.frames"),
+            (("\"synthetic\"", "\"lightbox\""), "settings.source"),
+            (
+                ("embedding_dim = 0", "embedding_dim = 0, features = 16"),
+                "settings.config.features",
+            ),
+            (
+                ("steps = 4\n", "steps = 4\nfit_steps = 3\n"),
+                "settings.fit_steps",
+            ),
+            (
+                ("steps = 4\n", "steps = 4\nmasks = false\n"),
+                "settings.masks",
+            ),
+            (
+                ("[[variants]]", "[anytime]\nsteps = [2]\n[[variants]]"),
+                "curve[].step",
+            ),
+        ] {
+            let text = ONE_TASK.replace(change.0, change.1);
+            assert_ne!(text, ONE_TASK);
+            let other = sweep_of(dir.path(), &text);
+            let error = read_result(&other, &out, &other.tasks[0])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                error.starts_with(&path.display().to_string())
+                    && error.contains(&format!("field `{field}`"))
+                    && error.contains("another --out"),
+                "{field}: {error}"
+            );
+            // Every reader refuses it: the local runner's, the Slurm script's and collect.
+            assert!(unfinished(&other, &out).is_err(), "{field}");
+            assert!(collect(&other, &out).is_err(), "{field}");
+        }
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            before,
+            "the record was changed"
+        );
+        assert!(!out.join("sweep.md").exists());
+
+        // A record written before the settings were kept is compared on what it holds.
+        let mut old = record_of(&sweep);
+        (old.settings, old.size, old.curve) = (None, 0, Vec::new());
+        write_result(&out, &old).unwrap();
+        let holdout = sweep_of(dir.path(), &ONE_TASK.replace("holdout = 4", "holdout = 2"));
+        assert!(
+            read_result(&holdout, &out, &holdout.tasks[0])
+                .unwrap()
+                .is_some()
+        );
+        let steps = sweep_of(dir.path(), &ONE_TASK.replace("steps = 4", "steps = 6"));
+        let error = read_result(&steps, &out, &steps.tasks[0])
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("field `steps`: recorded 4"), "{error}");
+    }
+
+    #[test]
+    fn collecting_a_missing_folder_says_so_and_names_no_log() {
+        let dir = tempfile::tempdir().unwrap();
+        let sweep = sweep_of(dir.path(), ONE_TASK);
+        let out = dir.path().join("no-such-run");
+        let error = collect(&sweep, &out).unwrap_err().to_string();
+        assert!(
+            error.starts_with(&out.display().to_string()) && error.contains("no such folder"),
+            "{error}"
+        );
+        assert!(!error.contains(LOG) && !out.exists(), "{error}");
+        // A folder whose tasks never started names no log either.
+        std::fs::create_dir_all(&out).unwrap();
+        let error = collect(&sweep, &out).unwrap_err().to_string();
+        assert!(
+            error.contains("1 of 1 tasks have no result") && !error.contains(LOG),
+            "{error}"
+        );
     }
 
     #[test]
