@@ -606,8 +606,8 @@ fn a_resumed_train_gives_the_checkpoint_bytes_of_an_uninterrupted_one() {
     assert!(forced.status.success(), "{}", text(&forced));
 }
 
-/// SIGTERM during `train` (as Ctrl-C) stops after the current step and writes a checkpoint
-/// that a later run can load, without scoring.
+/// SIGTERM during `train` (as Ctrl-C) stops within the current step (given up) and writes a
+/// checkpoint of the last finished one that a later run can load, without scoring.
 #[test]
 fn sigterm_during_train_writes_a_checkpoint() {
     if common::shared_data().is_none() {
@@ -1908,4 +1908,281 @@ fn tradeoff_sizes_above_the_datas_images_are_refused_before_training() {
         toml.contains("name = \"size=16\"") && !toml.contains("name = \"size=64\""),
         "{toml}"
     );
+}
+
+/// `stream` on the small run's data (`--size 32`, `--fit-steps 0`) into `out`, with `extra`,
+/// and by default 4 slots, 2 steps per frame, a point every 3 usable frames, a checkpoint
+/// every 2 arrivals and every 3rd frame held out (`extra` may set these flags instead).
+fn stream_small(data: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut command = orbit_nerf(&["stream", "--data", path_str(data), "--size", "32"]);
+    for (flag, value) in [
+        ("--store", "4"),
+        ("--steps-per-frame", "2"),
+        ("--eval-every", "3"),
+        ("--checkpoint-every", "2"),
+        ("--holdout", "3"),
+    ] {
+        if !extra.contains(&flag) {
+            command.args([flag, value]);
+        }
+    }
+    command
+        .args(["--fit-steps", "0", "--out", path_str(out)])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+/// The files a stream writes: none must exist after a refused stream.
+fn assert_stream_wrote_nothing(case: &str, out: &Path) {
+    for file in [
+        "checkpoint.onrf",
+        "checkpoint.snapshots",
+        "anytime.csv",
+        "summary.md",
+        "metrics.json",
+    ] {
+        assert!(!out.join(file).exists(), "{case}: wrote {file}");
+    }
+}
+
+/// No score from a stream that learned nothing (issue 42, first group): `stream` applies
+/// `train`'s rule (`train::check_trained`) before every anytime point and every checkpoint.
+/// Labels with every target behind its camera, a `--scene-box` no ray crosses and a config
+/// file's box far from every camera end non-zero naming the 0 samples per ray, print no
+/// PSNR and write no checkpoint, snapshot, curve, summary or metrics.json; a model that
+/// diverges (a tiny `adam_eps`) is refused the same way, naming the non-finite section.
+#[test]
+fn a_stream_that_learned_nothing_fails_without_a_score_or_a_checkpoint() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("stream-no-samples");
+    let (data, model) = small_training_run(&scratch);
+    let behind = scratch.path("behind");
+    copy_images_and_camera(&data, &behind);
+    let mut labels = read_json(&data.join("labels.json"));
+    for label in labels.as_array_mut().unwrap() {
+        label["r_Vo2To_vbs_true"] = serde_json::json!([0.0, 0.0, -5.0]);
+    }
+    std::fs::write(behind.join("labels.json"), labels.to_string()).unwrap();
+    let far_box = small_config(&scratch, "far.toml", |c| {
+        c.aabb_min = [100.0; 3];
+        c.aabb_max = [101.0; 3];
+    });
+    let tiny_eps = small_config(&scratch, "eps.toml", |c| c.adam_eps = 1e-45);
+    let nothing = [
+        "no training ray met the scene box",
+        "0 samples per ray",
+        "not saved and not scored",
+    ];
+    let model = path_str(&model);
+    type Case<'a> = (&'a str, &'a Path, Vec<&'a str>, &'a [&'a str]);
+    let cases: [Case; 4] = [
+        (
+            "labels behind the camera",
+            &behind,
+            vec!["--config", model, "--scene-box=-1,-1,-1,1,1,1"],
+            &nothing,
+        ),
+        (
+            "a --scene-box no ray crosses",
+            &data,
+            vec!["--config", model, "--scene-box", "100,100,100,101,101,101"],
+            &nothing,
+        ),
+        (
+            "a config file's box far from every camera",
+            &data,
+            vec!["--config", path_str(&far_box)],
+            &nothing,
+        ),
+        (
+            "a diverged model",
+            &data,
+            // 48 steps before the one check at the end, as `train`'s 40 diverge.
+            vec![
+                "--config",
+                path_str(&tiny_eps),
+                "--steps-per-frame",
+                "4",
+                "--eval-every",
+                "100",
+                "--checkpoint-every",
+                "100",
+            ],
+            &["training diverged", "adam_eps", "not saved and not scored"],
+        ),
+    ];
+    for (case, data, extra, needles) in cases {
+        let out = scratch.path("out");
+        let result = stream_small(data, &out, &extra);
+        assert_clear_error(case, &result, needles);
+        assert_stream_wrote_nothing(case, &out);
+    }
+    // The same data and config with the box where the cameras look: a stream that learns,
+    // and reports its samples per ray.
+    let out = scratch.path("learns");
+    let result = stream_small(&data, &out, &["--config", model]);
+    assert!(result.status.success(), "{}", text(&result));
+    let metrics = read_json(&out.join("metrics.json"));
+    let samples = &metrics["models"][0]["training"]["samples_per_ray"];
+    assert!(samples.as_f64().is_some_and(|s| s > 0.0), "{metrics}");
+}
+
+/// A config asking for more than the memory plan allows (issue 42, fifth group): the arena is
+/// planned from the config (`MemoryPlan`), so the most rays a step may take (2^20) with a
+/// `--memory-limit` below their plan is refused before anything is allocated, naming the
+/// field that sizes the parts; more rays than 2^20, or more samples per ray than a chunk's
+/// pass holds (`samples_per_chunk`), are refused naming the file and the field.
+#[test]
+fn a_config_asking_more_than_the_plan_allows_is_refused_naming_the_field() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("plan-bounds");
+    let (data, _) = small_training_run(&scratch);
+    let most_rays = small_config(&scratch, "most-rays.toml", |c| c.rays_per_batch = 1 << 20);
+    let out = scratch.path("out");
+    let over_limit = [
+        "needs 10",
+        "ray batch (rays_per_batch) 64.0 MiB",
+        "chunk buffers (samples_per_chunk, rays_per_batch)",
+        "memory limit of 64.0 MiB",
+    ];
+    let result = train_small(&data, &most_rays, &out, &["--memory-limit", "64M"]);
+    assert_clear_error("train, 2^20 rays in 64 MiB", &result, &over_limit);
+    assert!(!out.exists(), "train wrote {}", out.display());
+    let result = stream_small(
+        &data,
+        &out,
+        &["--config", path_str(&most_rays), "--memory-limit", "64M"],
+    );
+    assert_clear_error("stream, 2^20 rays in 64 MiB", &result, &over_limit);
+    assert!(!out.exists(), "stream wrote {}", out.display());
+
+    let too_many_rays = small_config(&scratch, "rays.toml", |c| c.rays_per_batch = (1 << 20) + 2);
+    let too_many_samples = small_config(&scratch, "samples.toml", |c| {
+        c.max_samples_per_ray = c.samples_per_chunk as u16 + 1
+    });
+    for (config, field) in [
+        (&too_many_rays, "rays_per_batch"),
+        (&too_many_samples, "max_samples_per_ray"),
+    ] {
+        for command in ["train", "stream"] {
+            let result = orbit_nerf(&[command, "--data", path_str(&data), "--size", "32"])
+                .args(["--config", path_str(config), "--out", path_str(&out)])
+                .output()
+                .unwrap();
+            let case = format!("{command} {field}");
+            assert_clear_error(&case, &result, &[path_str(config), field, "out of range"]);
+            assert!(!out.exists(), "{case}: wrote {}", out.display());
+        }
+    }
+}
+
+/// The step a trainer checkpoint was saved at (the `state` section's first counter).
+fn checkpoint_step(path: &Path) -> u32 {
+    let saved = checkpoint::load(path).unwrap();
+    let state = saved.section("state").unwrap();
+    u32::from_ne_bytes(state[..4].try_into().unwrap())
+}
+
+/// A stop heard within a step (issue 42, fifth group): with 2^20 rays per step (the most a
+/// config may ask; about 40 s a step of the tiny profile on 2 shared cores, 0.3 s when the
+/// rays were 128), SIGTERM two seconds into the first step of `train` and of `stream` ends
+/// each cleanly with the checkpoint of the last finished step (step 0: the step under way is
+/// given up, not finished), no score, and well before the step would have finished.
+#[test]
+fn sigterm_within_a_long_step_stops_before_the_step_ends() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    use std::io::{BufRead as _, Read as _};
+    use std::time::Instant;
+    let scratch = Scratch::new("long-step-sigterm");
+    let (data, _) = small_training_run(&scratch);
+    let most_rays = small_config(&scratch, "most-rays.toml", |c| c.rays_per_batch = 1 << 20);
+    // Start `args`, wait for `started` on its output and two seconds more (the first step is
+    // under way), send SIGTERM; returns what it printed, whether it exited cleanly and how
+    // long it took to exit after the signal.
+    let interrupt = |args: &[&str], started: &str| {
+        let mut child = orbit_nerf(args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+        let mut printed = String::new();
+        while !printed.contains(started) {
+            assert!(stdout.read_line(&mut printed).unwrap() > 0, "{printed}");
+        }
+        std::thread::sleep(Duration::from_secs(2));
+        let signalled = Instant::now();
+        let killed = std::process::Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        stdout.read_to_string(&mut printed).unwrap();
+        let result = child.wait_with_output().unwrap();
+        let seconds = signalled.elapsed().as_secs_f64();
+        printed.push_str(&text(&result));
+        (printed, result.status.success(), seconds)
+    };
+    let train_out = scratch.path("train");
+    let (printed, clean, seconds) = interrupt(
+        &[
+            "train",
+            "--data",
+            path_str(&data),
+            "--size",
+            "32",
+            "--config",
+            path_str(&most_rays),
+            "--steps",
+            "1000",
+            "--threads",
+            "2",
+            "--out",
+            path_str(&train_out),
+        ],
+        "training on",
+    );
+    assert!(clean, "{printed}");
+    assert!(printed.contains("stopped at step 0 of 1000"), "{printed}");
+    assert!(!printed.contains("PSNR"), "scored a stopped run: {printed}");
+    assert_eq!(checkpoint_step(&train_out.join("checkpoint.onrf")), 0);
+    assert!(seconds < 20.0, "{seconds:.1} s after SIGTERM: {printed}");
+
+    let stream_out = scratch.path("stream");
+    let (printed, clean, seconds) = interrupt(
+        &[
+            "stream",
+            "--data",
+            path_str(&data),
+            "--size",
+            "32",
+            "--store",
+            "4",
+            "--steps-per-frame",
+            "2",
+            "--config",
+            path_str(&most_rays),
+            "--threads",
+            "2",
+            "--out",
+            path_str(&stream_out),
+        ],
+        "streaming",
+    );
+    assert!(clean, "{printed}");
+    assert!(printed.contains("stopped after 1 arrivals"), "{printed}");
+    assert!(
+        !printed.contains("PSNR"),
+        "scored a stopped stream: {printed}"
+    );
+    // The frame is in the store and owes its 2 steps to the resumed stream.
+    assert_eq!(checkpoint_step(&stream_out.join("checkpoint.onrf")), 0);
+    assert!(seconds < 20.0, "{seconds:.1} s after SIGTERM: {printed}");
 }

@@ -17,7 +17,7 @@ use orbit_nerf_host::stream::{
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 /// A simulated lightbox set of `frames` frames of 32 px.
@@ -58,6 +58,21 @@ fn stream_api(
     resume: bool,
     events: &mut dyn FnMut(&Event<'_>),
 ) -> (Outcome, StreamState) {
+    let stop = AtomicBool::new(false);
+    let stops = (&stop, stop_after);
+    stream_api_stopped_by(source, store, checkpoint, stops, resume, events)
+}
+
+/// [`stream_api`] with a stop flag `stops.0` (a signal handler's, as it were) beside the
+/// deterministic `stops.1` (`--stop-after`).
+fn stream_api_stopped_by(
+    source: &mut dyn FrameSource,
+    store: u16,
+    checkpoint: &Path,
+    (stop, stop_after): (&AtomicBool, Option<u64>),
+    resume: bool,
+    events: &mut dyn FnMut(&Event<'_>),
+) -> (Outcome, StreamState) {
     let (config, mut state, restored) = if resume {
         let (saved, config, state) = stream::resume(checkpoint, source).unwrap();
         (config, state, Some(saved))
@@ -78,9 +93,8 @@ fn stream_api(
     if let Some(saved) = &restored {
         train::restore_checkpoint(checkpoint, saved, &mut trainer).unwrap();
     }
-    let stop = AtomicBool::new(false);
     let control = Control {
-        stop: &stop,
+        stop,
         stop_after,
         end_after: None,
         checkpoint,
@@ -340,8 +354,9 @@ fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
         );
     };
 
-    // SIGTERM: the run finishes its frame, checkpoints and exits cleanly. (40 frames make sure
-    // the signal arrives mid-stream.)
+    // SIGTERM: the run gives up the step under way, checkpoints the last finished one and
+    // exits cleanly; resumed, it first takes the rest of the frame's steps. (40 frames make
+    // sure the signal arrives mid-stream.)
     let terminated = dir.join("terminated");
     let (clean, text) = interrupt("-TERM", Duration::ZERO, &terminated);
     assert!(clean && text.contains("stopped after"), "{text}");
@@ -585,4 +600,111 @@ fn a_nerf_synthetic_folder_streams_its_training_split_in_file_order() {
         Some(stream::Arrival::Frame(again)) => assert_eq!(again.pixels, first.pixels),
         _ => panic!("lego frame 1 reads again"),
     }
+}
+
+/// A dataset source that raises `stop` as it hands out the frame at `raise_at`, so that the
+/// stream hears the stop before that frame's first step.
+struct StopAt<'s> {
+    inner: DatasetSource,
+    raise_at: u64,
+    stop: &'s AtomicBool,
+}
+
+impl FrameSource for StopAt<'_> {
+    fn info(&self) -> &stream::SourceInfo {
+        self.inner.info()
+    }
+    fn next(&mut self, stop: &AtomicBool) -> Option<stream::Arrival> {
+        let position = self.inner.position();
+        let arrival = self.inner.next(stop);
+        if position == self.raise_at {
+            self.stop.store(true, Ordering::SeqCst);
+        }
+        arrival
+    }
+    fn position(&self) -> u64 {
+        self.inner.position()
+    }
+    fn seek(&mut self, position: u64, arrived: &[String]) -> orbit_nerf_host::Result<()> {
+        self.inner.seek(position, arrived)
+    }
+    fn reload(&self, position: u64) -> orbit_nerf_host::Result<orbit_nerf_host::dataset::Frame> {
+        self.inner.reload(position)
+    }
+}
+
+/// The step a stream checkpoint was saved at (its `state` section's first counter).
+fn saved_step(path: &Path) -> u32 {
+    let saved = checkpoint::load(path).unwrap();
+    u32::from_ne_bytes(saved.section("state").unwrap()[..4].try_into().unwrap())
+}
+
+/// A stop heard within a frame's steps (issue 42, fifth group: a signal is heard between the
+/// passes of a step, which is given up) checkpoints the last finished step with the frame in
+/// the store; the resumed stream first takes the rest of that frame's steps (then its anytime
+/// point and checkpoint, when due) and ends bit-identical to a stream never stopped. Stops
+/// raised as frames arrive (the frame owes all its steps: at the first frame, before a
+/// checkpoint is due, before a point is due, at a held-out frame), then stops raised by a
+/// timer part-way through steps, each resumed in turn.
+#[test]
+fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let dir = temp_dir("stop-in-frame");
+    let data = dir.join("data");
+    simulated_set(&data, 24);
+    let open = || DatasetSource::open(&data, None, None).unwrap();
+    let whole = dir.join("whole.onrf");
+    let (outcome, whole_state) = stream_api(&mut open(), 6, &whole, None, false, &mut |_| {});
+    assert_eq!(outcome, Outcome::Finished);
+
+    let parts = dir.join("parts.onrf");
+    let mut resume = false;
+    // Arrival 3 ends with a checkpoint (every 4), 4 with a point (every 5 usable), 7 is
+    // held out (every 8th).
+    for raise_at in [0, 3, 4, 7] {
+        let stop = AtomicBool::new(false);
+        let mut source = StopAt {
+            inner: open(),
+            raise_at,
+            stop: &stop,
+        };
+        let stops = (&stop, None);
+        let (outcome, state) =
+            stream_api_stopped_by(&mut source, 6, &parts, stops, resume, &mut |_| {});
+        assert_eq!((outcome, state.position), (Outcome::Stopped, raise_at + 1));
+        // The frame is in (or held out) and owes its 3 steps.
+        assert_eq!(state.usable, raise_at + 1);
+        assert_eq!(saved_step(&parts), 3 * raise_at as u32);
+        resume = true;
+    }
+    // Then stops at times that fall part-way through a frame's steps, or between frames.
+    let mut stops_heard = 0;
+    for delay_ms in (5..).step_by(7) {
+        let stop = AtomicBool::new(false);
+        let (outcome, _) = std::thread::scope(|scope| {
+            scope.spawn(|| {
+                std::thread::sleep(Duration::from_millis(delay_ms));
+                stop.store(true, Ordering::SeqCst);
+            });
+            stream_api_stopped_by(&mut open(), 6, &parts, (&stop, None), true, &mut |_| {})
+        });
+        if outcome == Outcome::Finished {
+            break;
+        }
+        stops_heard += 1;
+    }
+    // (On this machine 13 timed stops, 10 of them part-way through a frame's steps.)
+    assert!(stops_heard > 0);
+    let (_, _, resumed) = stream::load(&parts).unwrap();
+    assert_eq!(
+        deterministic_part(&resumed),
+        deterministic_part(&whole_state)
+    );
+    assert!(
+        trainer_sections(&parts) == trainer_sections(&whole),
+        "the resumed stream's parameters, moments, occupancy or frames differ"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -56,7 +56,9 @@ pub fn check_plan(what: &Path, parts: &[Part], limit: Option<u64>) -> Result<()>
     ))
 }
 
-/// The parts of the core's memory plan (the arena) as named byte counts.
+/// The parts of the core's memory plan (the arena) as named byte counts; the parts that grow
+/// with a step's rays name the config fields that size them, so that a config asking for more
+/// rays than the memory allows is refused naming the field.
 pub fn arena_parts(plan: &MemoryPlan) -> [Part; 9] {
     [
         ("planes", plan.planes as u64),
@@ -66,8 +68,11 @@ pub fn arena_parts(plan: &MemoryPlan) -> [Part; 9] {
         ("MLPs", plan.mlp as u64),
         ("occupancy", plan.occupancy as u64),
         ("frame store", plan.frames as u64),
-        ("ray batch", plan.ray_batch as u64),
-        ("samples", plan.samples as u64),
+        ("ray batch (rays_per_batch)", plan.ray_batch as u64),
+        (
+            "chunk buffers (samples_per_chunk, rays_per_batch)",
+            plan.samples as u64,
+        ),
     ]
 }
 

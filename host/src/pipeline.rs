@@ -29,6 +29,7 @@ use crate::{HostError, Result, io, memory, presets};
 use orbit_nerf_core::{Config, Executor, MemoryPlan, PoseFit, StepReport, Trainer};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 /// The checkpoint's name in a run folder.
@@ -459,6 +460,15 @@ pub trait Observer {
 
     /// After the step that brought the trainer to `trainer.state().step` of `end`.
     fn step(&mut self, trainer: &mut Trainer<'_>, end: u32, report: &StepReport) -> Result<Flow>;
+
+    /// A flag (a signal handler's, say) that stops training within the current step once
+    /// raised: it is read before every step and between the passes of its chunks
+    /// (`Trainer::step_or_stop`), and the step it interrupts is given up without a trace, so
+    /// the trainer is that of the last finished step (a checkpoint of it resumes to the bits
+    /// of a run never stopped). `None` (the default): every step runs to its end.
+    fn stop_flag(&self) -> Option<&AtomicBool> {
+        None
+    }
 }
 
 /// No observer: train to the end.
@@ -482,6 +492,15 @@ pub struct StepTally {
 }
 
 impl StepTally {
+    /// Add `other`'s steps, rays, samples and seconds to these.
+    pub fn add(&mut self, other: &StepTally) {
+        self.steps += other.steps;
+        self.rays += other.rays;
+        self.samples += other.samples;
+        self.marched += other.marched;
+        self.seconds += other.seconds;
+    }
+
     /// Samples per ray (after early stop).
     pub fn samples_per_ray(&self) -> f64 {
         self.samples as f64 / self.rays.max(1) as f64
@@ -489,7 +508,9 @@ impl StepTally {
 }
 
 /// The one training loop: step `trainer` until its step count reaches `end` (or the observer
-/// stops it), telling `observer` after every step.
+/// stops it), telling `observer` after every step. A raised [`Observer::stop_flag`] ends it
+/// within the current step, which is given up (the trainer's step count then stays below
+/// `end`); the tally counts the finished steps.
 pub fn train_steps<E: Executor>(
     trainer: &mut Trainer<'_>,
     executor: &E,
@@ -500,9 +521,14 @@ pub fn train_steps<E: Executor>(
     observer.start(trainer, end);
     while trainer.state().step < end {
         let start = Instant::now();
-        let report = trainer
-            .step(executor)
-            .map_err(|e| HostError::Core(e.to_string()))?;
+        let flag = observer.stop_flag();
+        let stop = || flag.is_some_and(|flag| flag.load(Ordering::SeqCst));
+        let Some(report) = trainer
+            .step_or_stop(executor, &stop)
+            .map_err(|e| HostError::Core(e.to_string()))?
+        else {
+            break;
+        };
         tally.seconds += start.elapsed().as_secs_f64();
         tally.steps += 1;
         tally.rays += report.rays as u64;

@@ -78,9 +78,10 @@ pub enum PosePivot {
     TargetOrigin,
 }
 
-/// Most rays one training step may sample (2^20): stop requests are heard between steps, so
-/// a step must stay short on a small machine (a config with 2^24 rays took more than 30 s per
-/// step, issue 42).
+/// Most rays one training step may sample (2^20, 104 MiB of the arena): a config with 2^24
+/// rays took more than 30 s per step on a small machine (issue 42). A stop request no longer
+/// waits for a whole step ([`crate::Trainer::step_or_stop`] hears it between a chunk's
+/// passes), but the bound keeps a config's arena and a step's time within reason.
 pub const MAX_RAYS_PER_BATCH: u32 = 1 << 20;
 
 /// Everything that decides what the trainer computes. With the `serde` feature it reads from
@@ -154,8 +155,9 @@ pub struct Config {
     pub replacement: Replacement,
     /// Pixel capacity of one frame slot (width * height of the largest frame).
     pub max_pixels_per_frame: u32,
-    /// Rays sampled per training step: a multiple of `chunks`, at most 1048576 (stop
-    /// requests are heard between steps, so a step must stay short).
+    /// Rays sampled per training step: a multiple of `chunks`, at most 1048576 (each ray
+    /// takes 104 bytes of the arena: the ray batch and the chunks' per-ray buffers; a stop
+    /// request is heard between a chunk's passes, within a step).
     pub rays_per_batch: u32,
     /// Fraction of the rays drawn inside their frame's foreground box (the mask's box, or the
     /// box of pixels brighter than the sky); the rest cover the whole image, so empty space

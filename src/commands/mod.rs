@@ -184,8 +184,10 @@ fn choose_box(
     Ok(())
 }
 
-/// Raised by Ctrl-C / SIGTERM once [`stop_on_signal`] is installed: `train` stops after the
-/// current step and `stream` after the current frame, and both checkpoint.
+/// Raised by Ctrl-C / SIGTERM once [`stop_on_signal`] is installed: `train` and `stream` stop
+/// within the current step (read between the passes of its chunks; the step is given up) and
+/// checkpoint the last finished step; a resumed stream first takes the rest of its frame's
+/// steps.
 static STOP: AtomicBool = AtomicBool::new(false);
 
 /// Make Ctrl-C and SIGTERM raise [`STOP`] instead of ending the process.

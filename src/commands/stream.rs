@@ -444,7 +444,12 @@ fn figures(
                 steps: trainer.state().step as u64,
                 steps_skipped: trainer.state().skipped as u64,
                 seconds,
-                samples_per_ray: f64::NAN,
+                // This session's steps (a resumed stream's since it resumed, as `train`'s).
+                samples_per_ray: if state.session.steps > 0 {
+                    state.session.samples_per_ray()
+                } else {
+                    f64::NAN
+                },
             }),
             mean_at: None,
             pose_refinement: None,

@@ -14,7 +14,7 @@ use orbit_nerf_host::pipeline::{
     self, CHECKPOINT_FILE, Flow, Observer, Outcome, Pipeline, StepTally, TrainOptions,
 };
 use std::path::PathBuf;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// The training progress bar (the demo draws the same).
@@ -122,7 +122,8 @@ pub fn run(args: &TrainArgs) -> CliResult {
 const PLAIN_PROGRESS_EVERY: Duration = Duration::from_secs(5);
 
 /// The training progress: a bar on a terminal, else a plain line at the first step and then
-/// every few seconds; stops after the step during which Ctrl-C / SIGTERM arrived.
+/// every few seconds. Ctrl-C / SIGTERM stops training within the step it arrives in (the
+/// step is given up: the checkpoint is that of the last finished step).
 struct ProgressLines {
     bar: ProgressBar,
     resumed: bool,
@@ -205,11 +206,20 @@ impl Observer for ProgressLines {
             Flow::Continue
         })
     }
+
+    fn stop_flag(&self) -> Option<&AtomicBool> {
+        Some(&STOP)
+    }
 }
 
 /// Speed, samples per ray and skipped steps of this session's training steps.
 fn print_summary(progress: &ProgressLines) {
     let s = &progress.tally;
+    if s.steps == 0 {
+        // Stopped within the first step of the session, which was given up.
+        println!("no training step finished in this session");
+        return;
+    }
     println!(
         "trained in {:.1} s: {:.0} rays/s, {:.0} samples/s ({:.1} samples/ray after early stop, {:.1} marched), {} steps skipped",
         s.seconds,

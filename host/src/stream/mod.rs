@@ -16,7 +16,11 @@
 //! - The checkpoint holds the trainer's whole state plus a `stream` section ([`StreamState`]),
 //!   written atomically every `checkpoint_every` frames and when the stream stops; resuming
 //!   from it with the same source skips the frames already seen and ends bit-identical to an
-//!   uninterrupted run.
+//!   uninterrupted run. A stop request is heard within a training step (the step is given
+//!   up); the resumed stream first takes the rest of the interrupted frame's steps.
+//! - No score and no checkpoint from a model that learned nothing: before every anytime point
+//!   and checkpoint the model is checked by `train`'s rule ([`train::check_trained`]: no
+//!   training ray met the scene box, every step skipped, a non-finite parameter).
 
 pub mod source;
 
@@ -28,6 +32,7 @@ pub use source::{
 use crate::checkpoint::{self, Checkpoint, Section};
 use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
+use crate::pipeline::StepTally;
 use crate::report::{self, ViewMetrics};
 use crate::train;
 use orbit_nerf_core::{Config, Executor, Ingested, MemoryPlan, Replacement, Trainer};
@@ -125,6 +130,10 @@ pub struct StreamState {
     pub curve: Vec<AnytimePoint>,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
+    /// This session's training steps, rays and samples (since the stream started or
+    /// resumed; not saved: a resumed stream counts afresh, as `train --resume` does).
+    #[serde(skip)]
+    pub session: StepTally,
 }
 
 impl StreamState {
@@ -143,6 +152,7 @@ impl StreamState {
             bad: Vec::new(),
             curve: Vec::new(),
             seconds: 0.0,
+            session: StepTally::default(),
         }
     }
 }
@@ -175,7 +185,9 @@ pub enum Event<'e> {
 
 /// How a stream is stopped and where it saves itself.
 pub struct Control<'c> {
-    /// Raised (by a signal handler) to stop after the current frame.
+    /// Raised (by a signal handler) to stop within the current training step: the step is
+    /// given up, the stream checkpoints its last finished step and, resumed, first takes the
+    /// rest of the frame's steps.
     pub stop: &'c AtomicBool,
     /// Stop once this many arrivals have been consumed (deterministic interruption).
     pub stop_after: Option<u64>,
@@ -242,6 +254,14 @@ fn core_error(what: impl AsRef<Path>, e: orbit_nerf_core::Error) -> HostError {
 /// Stream frames from `source` into `trainer` until the source ends or `control` stops it,
 /// continuing from `state` (fresh, or restored from a checkpoint with the source already
 /// positioned by [`FrameSource::seek`]).
+///
+/// A stop request is heard within a training step (the step is given up) and checkpoints the
+/// last finished step; a stream stopped in the middle of a frame's steps takes the rest of
+/// them first when it resumes ([`steps_owed`]), so it ends bit-identical to one never
+/// stopped. Before every anytime point and every checkpoint the model is checked as `train`
+/// checks it ([`train::check_trained`] over this session's steps): a stream none of whose
+/// training rays met the scene box, whose every step was skipped or whose parameters went
+/// non-finite ends with that error, unscored and unsaved.
 pub fn run<E: Executor, S: FrameSource + ?Sized>(
     trainer: &mut Trainer<'_>,
     executor: &E,
@@ -252,6 +272,28 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
 ) -> Result<Outcome> {
     // Arrivals and their ingest + training seconds since the last anytime point.
     let (mut window_frames, mut window_seconds) = (0u64, 0.0f64);
+    let owed = steps_owed(trainer, state);
+    if owed > 0 {
+        let started = Instant::now();
+        let name = source.info().name.clone();
+        let (_, stopped) = train_frame(trainer, executor, state, control, owed, &name)?;
+        let seconds = started.elapsed().as_secs_f64();
+        state.seconds += seconds;
+        if stopped {
+            checkpoint(control, trainer, source, state, on_event)?;
+            return Ok(Outcome::Stopped);
+        }
+        (window_frames, window_seconds) = (1, seconds);
+        after_frame(
+            trainer,
+            executor,
+            source,
+            state,
+            control,
+            (true, &mut window_frames, &mut window_seconds),
+            on_event,
+        )?;
+    }
     loop {
         if control.stop.load(Ordering::SeqCst)
             || control.stop_after.is_some_and(|n| state.position >= n)
@@ -276,6 +318,7 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             Arrival::Bad(e) => Err(e),
         };
         let was_usable = usable.is_ok();
+        let mut stopped = false;
         match usable {
             Err(e) => {
                 let bad = BadFrame {
@@ -287,17 +330,12 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             }
             Ok(frame) => {
                 let fate = ingest(trainer, state, position, &frame)?;
-                let mut last = LastLoss(f32::NAN);
+                let mut mse = f32::NAN;
                 if !trainer.frames().is_empty() {
-                    let end = trainer.state().step + state.settings.steps_per_frame;
-                    crate::pipeline::train_steps(trainer, executor, end, &mut last).map_err(
-                        |e| match e {
-                            HostError::Core(reason) => HostError::invalid(&frame.name, reason),
-                            other => other,
-                        },
-                    )?;
+                    let steps = state.settings.steps_per_frame;
+                    (mse, stopped) =
+                        train_frame(trainer, executor, state, control, steps, &frame.name)?;
                 }
-                let mse = last.0;
                 on_event(&Event::Frame {
                     position,
                     name: &frame.name,
@@ -310,38 +348,21 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         let seconds = started.elapsed().as_secs_f64();
         window_seconds += seconds;
         state.seconds += seconds;
-        if was_usable
-            && state
-                .usable
-                .is_multiple_of(state.settings.eval_every.max(1))
-        {
-            let per_frame = window_seconds / window_frames as f64;
-            let point = anytime_point(trainer, executor, source, state, per_frame)?;
-            save_snapshot(control.checkpoint, state.curve.len(), trainer)?;
-            on_event(&Event::Anytime(&point));
-            state.curve.push(point);
-            (window_frames, window_seconds) = (0, 0.0);
-        }
-        if state
-            .position
-            .is_multiple_of(state.settings.checkpoint_every.max(1))
-        {
+        if stopped {
             checkpoint(control, trainer, source, state, on_event)?;
+            return Ok(Outcome::Stopped);
         }
+        after_frame(
+            trainer,
+            executor,
+            source,
+            state,
+            control,
+            (was_usable, &mut window_frames, &mut window_seconds),
+            on_event,
+        )?;
     }
-    if state
-        .curve
-        .last()
-        .is_none_or(|p| p.frames_seen < state.position)
-        && state.usable > 0
-    {
-        let per_frame = window_seconds / window_frames.max(1) as f64;
-        let point = anytime_point(trainer, executor, source, state, per_frame)?;
-        save_snapshot(control.checkpoint, state.curve.len(), trainer)?;
-        on_event(&Event::Anytime(&point));
-        state.curve.push(point);
-    }
-    // A finished stream that never trained holds nothing worth saving.
+    // A finished stream that never trained holds nothing worth scoring or saving.
     if state.usable == 0 {
         return Err(HostError::invalid(
             &source.info().name,
@@ -361,26 +382,158 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             ),
         ));
     }
+    if state
+        .curve
+        .last()
+        .is_none_or(|p| p.frames_seen < state.position)
+    {
+        let per_frame = window_seconds / window_frames.max(1) as f64;
+        add_point(
+            trainer, executor, source, state, control, per_frame, on_event,
+        )?;
+    }
     checkpoint(control, trainer, source, state, on_event)?;
     Ok(Outcome::Finished)
 }
 
-/// The loss of the last training step (NaN before one).
-struct LastLoss(f32);
+/// The steps the frame the stream took last still owes: a stop heard within a frame's steps
+/// leaves the rest of them to the resumed stream. Every usable frame gets `steps_per_frame`
+/// steps once the store holds a frame, and the first usable frame offered is stored (a store
+/// with a free slot takes it); so after a whole frame the trainer's step count is
+/// `usable * steps_per_frame`, or 0 while nothing was stored. A count that is not short of
+/// that by at most one frame's steps owes nothing.
+pub fn steps_owed(trainer: &Trainer<'_>, state: &StreamState) -> u32 {
+    let per_frame = state.settings.steps_per_frame as u64;
+    let due = if state.stored == 0 {
+        0
+    } else {
+        state.usable.saturating_mul(per_frame)
+    };
+    let owed = due.saturating_sub(trainer.state().step as u64);
+    if owed <= per_frame { owed as u32 } else { 0 }
+}
 
-impl crate::pipeline::Observer for LastLoss {
+/// Train `steps` steps of the frame named `name` (or the rest of them), hearing
+/// `control.stop` within a step; the steps are added to `state.session`. Returns the last
+/// step's loss (NaN before one) and whether the stop cut the steps short.
+fn train_frame<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    state: &mut StreamState,
+    control: &Control<'_>,
+    steps: u32,
+    name: &str,
+) -> Result<(f32, bool)> {
+    let end = trainer.state().step.saturating_add(steps);
+    let mut observer = FrameSteps {
+        mse: f32::NAN,
+        stop: control.stop,
+    };
+    let tally = crate::pipeline::train_steps(trainer, executor, end, &mut observer).map_err(
+        |e| match e {
+            HostError::Core(reason) => HostError::invalid(name, reason),
+            other => other,
+        },
+    )?;
+    state.session.add(&tally);
+    Ok((observer.mse, trainer.state().step < end))
+}
+
+/// After an arrival (its steps taken, when it was `usable`): the anytime point when one is
+/// due, then the checkpoint when one is due. `window` holds the arrivals and their seconds
+/// since the last point.
+fn after_frame<E: Executor, S: FrameSource + ?Sized>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    source: &S,
+    state: &mut StreamState,
+    control: &Control<'_>,
+    (usable, window_frames, window_seconds): (bool, &mut u64, &mut f64),
+    on_event: &mut dyn FnMut(&Event<'_>),
+) -> Result<()> {
+    if usable
+        && state
+            .usable
+            .is_multiple_of(state.settings.eval_every.max(1))
+        && state
+            .curve
+            .last()
+            .is_none_or(|p| p.frames_seen < state.position)
+    {
+        let per_frame = *window_seconds / (*window_frames).max(1) as f64;
+        add_point(
+            trainer, executor, source, state, control, per_frame, on_event,
+        )?;
+        (*window_frames, *window_seconds) = (0, 0.0);
+    }
+    if state
+        .position
+        .is_multiple_of(state.settings.checkpoint_every.max(1))
+    {
+        checkpoint(control, trainer, source, state, on_event)?;
+    }
+    Ok(())
+}
+
+/// Score the model on the held-out views so far (once [`check_model`] lets it), save its
+/// snapshot and add the point to the curve.
+fn add_point<E: Executor, S: FrameSource + ?Sized>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    source: &S,
+    state: &mut StreamState,
+    control: &Control<'_>,
+    seconds_per_frame: f64,
+    on_event: &mut dyn FnMut(&Event<'_>),
+) -> Result<()> {
+    check_model(control, trainer, state)?;
+    let point = anytime_point(trainer, executor, source, state, seconds_per_frame)?;
+    save_snapshot(control.checkpoint, state.curve.len(), trainer)?;
+    on_event(&Event::Anytime(&point));
+    state.curve.push(point);
+    Ok(())
+}
+
+/// The loss of the last training step (NaN before one), and the stop flag heard within a
+/// step.
+struct FrameSteps<'s> {
+    mse: f32,
+    stop: &'s AtomicBool,
+}
+
+impl crate::pipeline::Observer for FrameSteps<'_> {
     fn step(
         &mut self,
         _: &mut Trainer<'_>,
         _: u32,
         report: &orbit_nerf_core::StepReport,
     ) -> Result<crate::pipeline::Flow> {
-        self.0 = report.mse;
+        self.mse = report.mse;
         Ok(crate::pipeline::Flow::Continue)
+    }
+
+    fn stop_flag(&self) -> Option<&AtomicBool> {
+        Some(self.stop)
     }
 }
 
-/// Save the stream (with the source's arrival names) and report it.
+/// Refuse to score or save a model that learned nothing or is garbage: `train`'s rule
+/// ([`train::check_trained`]) over this session's steps, naming the stream's output folder.
+fn check_model(control: &Control<'_>, trainer: &Trainer<'_>, state: &StreamState) -> Result<()> {
+    let out = control
+        .checkpoint
+        .parent()
+        .filter(|dir| !dir.as_os_str().is_empty())
+        .unwrap_or(control.checkpoint);
+    let tally = train::TrainingTally {
+        steps: state.session.steps,
+        samples: state.session.samples,
+    };
+    train::check_trained(out, trainer, tally)
+}
+
+/// Save the stream (with the source's arrival names) and report it, once [`check_model`]
+/// lets it.
 fn checkpoint<S: FrameSource + ?Sized>(
     control: &Control<'_>,
     trainer: &Trainer<'_>,
@@ -388,6 +541,7 @@ fn checkpoint<S: FrameSource + ?Sized>(
     state: &mut StreamState,
     on_event: &mut dyn FnMut(&Event<'_>),
 ) -> Result<()> {
+    check_model(control, trainer, state)?;
     state.arrived = source.arrived().to_vec();
     save(control.checkpoint, trainer, state)?;
     on_event(&Event::Checkpoint(control.checkpoint));

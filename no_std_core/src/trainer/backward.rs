@@ -19,6 +19,12 @@ impl Chunk<'_> {
         let norm = 1.0 / (3.0 * c.rays_per_batch as f32);
         let (mut first, end) = (self.first_ray, self.first_ray + self.ray_count);
         while first < end {
+            // A stop request is heard between passes: the rest of the rays are left and the
+            // step is abandoned (`Trainer::step_or_stop`).
+            if shared.stop.is_some_and(|stop| stop()) {
+                self.report.stopped = true;
+                return;
+            }
             let mut laps = shared.timer.laps();
             let (rays, marched, n) = self.forward_pass(shared, first, end, true, &mut laps);
             for r in 0..rays {

@@ -96,6 +96,9 @@ pub(super) struct ChunkReport {
     pub(super) marched: u32,
     /// Huber cost of a Jacobian pass's channel residuals (`backward::robust_residual`).
     pub(super) robust_cost: f32,
+    /// The pass's stop request was heard before all the chunk's rays were trained: its
+    /// gradients are partial (`Trainer::step_or_stop` throws them away).
+    pub(super) stopped: bool,
 }
 
 impl Chunk<'_> {
@@ -365,6 +368,21 @@ impl Chunk<'_> {
             self.report.samples += n as u32;
             first += rays;
         }
+    }
+
+    /// Zero the gradients a training pass left in this chunk (the texels its touched bits
+    /// name, the MLP's and the frames'), as the step's reduction leaves them: what an
+    /// abandoned step does instead of reducing and applying them.
+    pub(super) fn clear_gradients(&mut self, features: usize) {
+        for texel in set_bits(self.touched) {
+            let range = texel * features..(texel + 1) * features;
+            if let Some(grads) = self.plane_grads.get_mut(range) {
+                grads.fill(0.0);
+            }
+        }
+        self.touched.fill(0);
+        self.mlp_grads.fill(0.0);
+        self.frame_grads.fill(0.0);
     }
 
     /// Density of each of `points` into `sigma` (the same field as the density pass).

@@ -143,7 +143,8 @@ pub struct Trainer<'a> {
 #[derive(Clone, Copy)]
 enum Pass<'s> {
     /// A training step: each ray uses its frame's embedding; draws are keyed by the step.
-    Train,
+    /// The chunks ask `stop` between their passes whether to give the step up.
+    Train { stop: &'s (dyn Fn() -> bool + Sync) },
     /// One step of fitting a held-out view's frame parameters (`params`: embedding, then
     /// the pose correction its rays went through) to its image with the field frozen;
     /// `center` is the label's camera centre; the pose correction gets gradients with
@@ -217,6 +218,8 @@ struct Shared<'s> {
     jacobian_channel: Option<usize>,
     /// The host's clock, for the chunks' stage times (feature `profile`).
     timer: Timer,
+    /// A training step's stop request, asked between a chunk's passes (`Pass::Train`).
+    stop: Option<&'s (dyn Fn() -> bool + Sync)>,
 }
 
 impl<'a> Trainer<'a> {
@@ -297,7 +300,7 @@ impl<'a> Trainer<'a> {
             _ => None,
         };
         let (embedding, draw_counter) = match pass {
-            Pass::Train => (Embedding::PerFrame(&*self.frame_params), self.state.step),
+            Pass::Train { .. } => (Embedding::PerFrame(&*self.frame_params), self.state.step),
             Pass::FitView { params, step, .. } => {
                 (Embedding::Fixed(params.get(..dim).unwrap_or(&[])), step)
             }
@@ -334,7 +337,7 @@ impl<'a> Trainer<'a> {
             fitting_view: matches!(pass, Pass::FitView { .. } | Pass::PoseJacobian { .. }),
             fit_pose,
             pose_gradients: match pass {
-                Pass::Train => self.config.pose_learns_at(self.state.step),
+                Pass::Train { .. } => self.config.pose_learns_at(self.state.step),
                 _ => fit_pose.is_some(),
             },
             jacobian_channel: match pass {
@@ -342,6 +345,10 @@ impl<'a> Trainer<'a> {
                 _ => None,
             },
             timer: self.profile.timer,
+            stop: match pass {
+                Pass::Train { stop } => Some(stop),
+                _ => None,
+            },
         }
     }
 

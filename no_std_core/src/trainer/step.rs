@@ -7,30 +7,60 @@ impl<'a> Trainer<'a> {
     /// One training step. Returns what it did; a step whose loss or gradients are not finite
     /// is counted and skipped, leaving the parameters untouched.
     pub fn step<E: Executor>(&mut self, executor: &E) -> Result<StepReport, Error> {
+        self.step_or_stop(executor, &|| false)
+            .map(Option::unwrap_or_default)
+    }
+
+    /// [`Trainer::step`] that gives up when `stop` says so: `stop` is asked before the step
+    /// and between the passes of every chunk (each pass at most `samples_per_chunk`
+    /// samples), so a stop request waits for one pass, not for a whole step of
+    /// `rays_per_batch` rays. A step given up returns `Ok(None)` and leaves no trace: no
+    /// update, and the step counter, the random draws (keyed by the step), the optimiser's
+    /// moments and the chunks' gradient buffers (zeroed again) are as before it, so a
+    /// checkpoint taken then resumes to the bits of a run never stopped. Only the profile's
+    /// stage times keep the time it took. `stop` may be called from any of the executor's
+    /// threads, any number of times.
+    pub fn step_or_stop<E: Executor>(
+        &mut self,
+        executor: &E,
+        stop: &(dyn Fn() -> bool + Sync),
+    ) -> Result<Option<StepReport>, Error> {
         self.require_training()?;
-        self.forward_backward(executor)?;
+        if stop() {
+            return Ok(None);
+        }
+        if !self.forward_backward(executor, stop)? {
+            let features = self.config.features as usize;
+            executor.for_each(&mut self.chunks, |chunk| chunk.clear_gradients(features));
+            return Ok(None);
+        }
         let report = self.reduce_and_apply(executor);
         self.state.step += 1;
         if self.state.step.is_multiple_of(self.config.occupancy_every) {
             self.refresh_occupancy(executor);
         }
-        Ok(report)
+        Ok(Some(report))
     }
 
     /// Sample this step's batch and run every chunk's forward and backward pass, leaving the
-    /// gradients in the chunks' buffers.
-    pub(super) fn forward_backward<E: Executor>(&mut self, executor: &E) -> Result<(), Error> {
+    /// gradients in the chunks' buffers. Returns `false` when a chunk heard `stop` before it
+    /// had trained all its rays (the gradients are then partial).
+    pub(super) fn forward_backward<E: Executor>(
+        &mut self,
+        executor: &E,
+        stop: &(dyn Fn() -> bool + Sync),
+    ) -> Result<bool, Error> {
         let mut laps = self.profile.laps();
         self.sample_rays(executor)?;
         self.profile
             .serial(&mut laps, Bucket::Train, Stage::RaySampling);
         let rays = self.config.rays_per_batch as usize;
-        self.with_chunks(Pass::Train, rays, |shared, chunks| {
+        self.with_chunks(Pass::Train { stop }, rays, |shared, chunks| {
             executor.for_each(chunks, |chunk| chunk.train(shared))
         });
         let times = self.chunks.iter_mut().map(|chunk| &mut chunk.times);
         self.profile.parallel(&mut laps, Bucket::Train, times, None);
-        Ok(())
+        Ok(!self.chunks.iter().any(|chunk| chunk.report.stopped))
     }
 
     /// Sum the chunks' gradients in chunk order, check them, and apply Adam. The planes'

@@ -36,7 +36,7 @@ pub(super) fn small_config() -> Config {
 /// Loss of the current batch (sum of squared errors / (3 * rays_per_batch), the quantity
 /// the step differentiates) and the frame gradients of slot 0; no update is applied.
 fn loss_and_frame_gradients(trainer: &mut Trainer<'_>) -> (f64, [f32; 10]) {
-    trainer.forward_backward(&Sequential).unwrap();
+    trainer.forward_backward(&Sequential, &|| false).unwrap();
     let mut sse = 0.0f64;
     let mut grads = [0.0f32; 10];
     for chunk in trainer.chunks.iter_mut() {
@@ -487,7 +487,7 @@ fn coarse_to_fine_hides_the_finer_scales_at_first_and_uses_all_after_its_steps()
     for v in trainer.planes[fine.clone()].iter_mut() {
         *v = f16::from_f32(v.to_f32() * 0.5);
     }
-    trainer.forward_backward(&Sequential).unwrap();
+    trainer.forward_backward(&Sequential, &|| false).unwrap();
     let same: f64 = trainer
         .chunks
         .iter()
@@ -664,7 +664,7 @@ fn samples_cut_off_leave_the_gradients_of_rays_that_end_there() {
             *w = 0.0;
         }
         trainer.mlp[out.biases] = 25.0f32.ln();
-        trainer.forward_backward(&Sequential).unwrap();
+        trainer.forward_backward(&Sequential, &|| false).unwrap();
         let (mut kept, mut marched, mut hash) = (0, 0, 0xcbf2_9ce4_8422_2325u64);
         for chunk in trainer.chunks.iter() {
             kept += chunk.report.samples;
@@ -828,4 +828,54 @@ fn point_queries_agree_with_rendering_and_do_not_depend_on_the_partition() {
         trainer.density_at(&Sequential, &points, &mut all[..99]),
         Err(Error::BufferSize { .. })
     ));
+}
+
+/// A step given up part-way (`step_or_stop`: before it starts, after a few of a chunk's
+/// passes, in the other chunk's last pass) leaves no trace: every checkpoint section and
+/// every gradient buffer is as before it, and the steps after it give the reports and the
+/// bits of a trainer that was never stopped. A stop request that comes after the last pass
+/// lets the step finish.
+#[test]
+fn a_step_given_up_part_way_leaves_the_trainer_as_it_was() {
+    use core::sync::atomic::{AtomicUsize, Ordering};
+    // Pose correction and embeddings learn from step 0; each chunk trains its 16 rays in 8
+    // passes: a step asks 17 times (once before it starts, once before each pass).
+    let config = small_config();
+    let plan = MemoryPlan::new(&config);
+    let mut arenas = [[0u8; 3 << 17]; 2];
+    let [whole_arena, stopped_arena] = &mut arenas;
+    let mut whole = Trainer::new(config, &mut whole_arena[..plan.total]).unwrap();
+    let mut stopped = Trainer::new(config, &mut stopped_arena[..plan.total]).unwrap();
+    put_test_frame(&mut whole);
+    put_test_frame(&mut stopped);
+    let gradients_clear = |trainer: &Trainer<'_>| {
+        trainer.chunks.iter().all(|c| {
+            c.plane_grads
+                .iter()
+                .chain(c.mlp_grads.iter())
+                .all(|&g| g == 0.0)
+                && c.frame_grads.iter().all(|&g| g == 0.0)
+                && c.touched.iter().all(|&w| w == 0)
+        })
+    };
+    for give_up_at in [0, 1, 4, 9, 16, 17] {
+        let polls = AtomicUsize::new(0);
+        let stop = || polls.fetch_add(1, Ordering::SeqCst) >= give_up_at;
+        let report = stopped.step_or_stop(&Sequential, &stop).unwrap();
+        if give_up_at < 17 {
+            assert_eq!(report, None, "stop at poll {give_up_at}");
+            assert!(polls.load(Ordering::SeqCst) > give_up_at);
+            assert!(stopped.sections() == whole.sections(), "poll {give_up_at}");
+            assert!(gradients_clear(&stopped), "poll {give_up_at}");
+            let report = stopped.step(&Sequential).unwrap();
+            assert_eq!(report, whole.step(&Sequential).unwrap());
+        } else {
+            assert_eq!(polls.load(Ordering::SeqCst), 17);
+            assert_eq!(report, Some(whole.step(&Sequential).unwrap()));
+        }
+        assert!(stopped.sections() == whole.sections(), "poll {give_up_at}");
+        assert!(gradients_clear(&stopped));
+    }
+    assert_eq!(stopped.state().step, 6);
+    assert!(stopped.state().pose_updates > 0);
 }
