@@ -100,7 +100,7 @@ fn checkpoint_of_config(config: Config, threads: usize) -> Option<Vec<u8>> {
     }
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("run.onrf");
-    train::save_checkpoint(&path, &trainer).unwrap();
+    train::save_checkpoint(&path, &trainer, &[]).unwrap();
     Some(std::fs::read(path).unwrap())
 }
 
@@ -236,7 +236,7 @@ fn profiling_changes_no_bit_and_times_every_stage() {
         let view_ns = start.elapsed().as_nanos() as u64;
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.onrf");
-        train::save_checkpoint(&path, &trainer).unwrap();
+        train::save_checkpoint(&path, &trainer, &[]).unwrap();
         let bytes = std::fs::read(path).unwrap();
         (bytes, image, trainer.profile(), steps_ns, view_ns)
     };
@@ -798,9 +798,9 @@ fn checkpoints_round_trip_and_reject_damage() {
     let plan = MemoryPlan::new(&config);
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).unwrap();
-    train::restore_checkpoint(&path, &checkpoint, &mut trainer).unwrap();
+    train::restore_checkpoint(&path, &mut trainer, &[]).unwrap();
     let again = dir.path().join("b.onrf");
-    train::save_checkpoint(&again, &trainer).unwrap();
+    train::save_checkpoint(&again, &trainer, &[]).unwrap();
     assert!(
         std::fs::read(&again).unwrap() == bytes,
         "restore + save changed the checkpoint"
@@ -815,16 +815,19 @@ fn checkpoints_round_trip_and_reject_damage() {
         .to_string();
     assert!(err.contains("cut.onrf"), "{err}");
 
-    // A checkpoint of another model does not fit this trainer: the section is named.
+    // A checkpoint of another model is refused by the trainer of another config.
     let mut other = config;
     other.features = 16;
     let plan = MemoryPlan::new(&other);
     let mut arena = vec![0u8; plan.total];
     let mut wrong = Trainer::new(other, &mut arena).unwrap();
-    let err = train::restore_checkpoint(&path, &checkpoint, &mut wrong)
+    let err = train::restore_checkpoint(&path, &mut wrong, &[])
         .unwrap_err()
         .to_string();
-    assert!(err.contains("planes"), "{err}");
+    assert!(
+        err.contains("a.onrf") && err.contains("another config"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -140,3 +140,30 @@ fn the_readme_is_a_front_door() {
         "README.md has {lines} lines; the book holds the rest"
     );
 }
+
+/// Every test the README's "Hard cases" table names (in backticks, in its last column) is a
+/// test of `tests/hard_cases.rs`.
+#[test]
+fn every_test_the_readme_hard_cases_table_names_exists() {
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    let suite = std::fs::read_to_string(root().join("tests/hard_cases.rs")).unwrap();
+    let section = readme
+        .split("## Hard cases")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("README has a Hard cases section");
+    let named: Vec<&str> = (section.lines())
+        .filter(|line| line.starts_with("| ") && !line.starts_with("| ---"))
+        .filter_map(|line| line.trim_end_matches('|').rsplit('|').next())
+        .flat_map(|outcome| outcome.split('`').skip(1).step_by(2))
+        .filter(|name| name.contains('_'))
+        .filter(|name| name.chars().all(|c| c.is_ascii_lowercase() || c == '_'))
+        .collect();
+    assert!(named.len() >= 8, "{named:?}");
+    for name in named {
+        assert!(
+            suite.contains(&format!("fn {name}(")),
+            "README names `{name}`, which is not a test of tests/hard_cases.rs"
+        );
+    }
+}

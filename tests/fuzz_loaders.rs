@@ -352,15 +352,15 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
     let mut arena = vec![0u8; small_plan.total];
     let trainer = Trainer::new(small, &mut arena).unwrap();
     let checkpoint_path = file("run.onrf");
-    train::save_checkpoint(&checkpoint_path, &trainer).unwrap();
+    train::save_checkpoint(&checkpoint_path, &trainer, &[]).unwrap();
     drop(trainer);
     let checkpoint_seed = std::fs::read(&checkpoint_path).unwrap();
     let restore = |bytes: &[u8]| {
         let p = checkpoint_path.as_path();
-        let Ok(saved) = checkpoint::decode(p, bytes) else {
+        let Ok(mut reader) = checkpoint::SectionReader::new(p, std::io::Cursor::new(bytes)) else {
             return false;
         };
-        let Ok(config) = train::checkpoint_config(p, &saved) else {
+        let Ok(config) = train::decode_config(p, &reader.kind, &reader.config) else {
             return false;
         };
         let plan = MemoryPlan::new(&config);
@@ -371,7 +371,8 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
         let Ok(mut trainer) = Trainer::new(config, &mut arena) else {
             return false;
         };
-        train::restore_checkpoint(p, &saved, &mut trainer).is_ok()
+        let every: Vec<&str> = trainer.sections().iter().map(|(name, _)| *name).collect();
+        train::restore_from(&mut reader, &mut trainer, &[], &every).is_ok()
     };
     crashes.extend(fuzz(
         "checkpoint",

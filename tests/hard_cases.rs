@@ -493,16 +493,15 @@ fn a_checkpoint_with_a_nan_parameter_is_refused_naming_the_file_and_section() {
     config.max_pixels_per_frame = 64;
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
     let path = scratch.path("run.onrf");
-    train::save_checkpoint(&path, &Trainer::new(config, &mut arena).unwrap()).unwrap();
+    train::save_checkpoint(&path, &Trainer::new(config, &mut arena).unwrap(), &[]).unwrap();
     let mut saved = checkpoint::load(&path).unwrap();
     let mlp = saved.sections.iter_mut().find(|s| s.name == "mlp").unwrap();
     mlp.bytes[8..12].copy_from_slice(&f32::NAN.to_ne_bytes());
     checkpoint::save(&path, &saved).unwrap();
 
-    let saved = checkpoint::load(&path).unwrap();
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
     let mut trainer = Trainer::new(config, &mut arena).unwrap();
-    let error = train::restore_checkpoint(&path, &saved, &mut trainer)
+    let error = train::restore_checkpoint(&path, &mut trainer, &[])
         .unwrap_err()
         .to_string();
     for needle in ["run.onrf", "`mlp`", "non-finite value (element 2)"] {
@@ -1071,11 +1070,10 @@ fn printed_mean_psnr(case: &str, out: &Output) -> f64 {
 /// checkpoint at `path`, restored into a trainer of its config.
 fn pose_corrections(path: &Path) -> Vec<PoseCorrection> {
     use orbit_nerf_core::{MemoryPlan, Trainer};
-    let saved = checkpoint::load(path).unwrap();
-    let config = train::checkpoint_config(path, &saved).unwrap();
+    let config = orbit_nerf_host::pipeline::checkpoint_config(path).unwrap();
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
     let mut trainer = Trainer::new(config, &mut arena).unwrap();
-    train::restore_checkpoint(path, &saved, &mut trainer).unwrap();
+    train::restore_checkpoint(path, &mut trainer, &[]).unwrap();
     (0..config.max_frames as usize)
         .filter_map(|slot| trainer.pose_correction(slot))
         .collect()
@@ -1429,9 +1427,8 @@ fn outputs_that_exist_are_never_replaced_without_force() {
 }
 
 /// Memory the plan forgot (issue 42, fourth group): `export` checks the model it restores
-/// (arena, the checkpoint file and its sections) against `--memory-limit` before reading the
-/// file, as `eval` does, and writes nothing; a checkpoint's save streams its sections (no
-/// second copy), so the file is the one a fresh save of the same run writes.
+/// (its arena) and the density grid against `--memory-limit` before reading the file, as
+/// `eval` does, and writes nothing.
 #[test]
 fn export_checks_the_models_memory_before_reading_it() {
     if common::shared_data().is_none() {
@@ -1458,14 +1455,153 @@ fn export_checks_the_models_memory_before_reading_it() {
     assert_clear_error(
         "export over the memory limit",
         &out,
-        &[
-            "checkpoint.onrf",
-            "memory limit",
-            "checkpoint file",
-            "planes",
-        ],
+        &["checkpoint.onrf", "memory limit", "density grid", "planes"],
     );
     assert!(!mesh.exists());
+}
+
+/// Address space a process of the binary takes beside its memory plan: code, thread stacks,
+/// small allocations. glibc's malloc would reserve 64 MiB of (untouched) address space per
+/// thread arena on top, so the capped runs use one arena (`MALLOC_ARENA_MAX=1`).
+const PROCESS_ALLOWANCE_MIB: u64 = 128;
+
+/// The total of the plan's stage `stage` as `train --dry-run` prints it, in MiB.
+fn planned_mib(printed: &str, stage: &str) -> f64 {
+    let line = (printed.lines())
+        .find_map(|l| l.trim().strip_prefix(&format!("{stage}: ")))
+        .unwrap_or_else(|| panic!("no `{stage}` line in: {printed}"));
+    let (value, unit) = line.split_once(' ').unwrap();
+    let value: f64 = value.parse().unwrap();
+    match &unit[..3] {
+        "KiB" => value / 1024.0,
+        "MiB" => value,
+        "GiB" => value * 1024.0,
+        _ => panic!("unit of {line}"),
+    }
+}
+
+/// No command aborts on an allocation (issue 42, fourth group): a model planned at about 90 %
+/// of `--memory-limit` goes through `train` (with its save and scoring), `eval` and `export`
+/// under an address-space cap of the limit plus [`PROCESS_ALLOWANCE_MIB`], which leaves no
+/// room for a copy of the checkpoint: restoring and saving work in the arena itself. The
+/// printed plan (`train --dry-run`) is what sizes the model.
+#[test]
+fn a_model_at_nine_tenths_of_its_limit_trains_saves_scores_and_exports_under_a_cap() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("address-space");
+    let data = scratch.path("data");
+    common::simulated_lightbox(&data, 12, 32);
+    let limit_mib = 768u64;
+    let limit = format!("{limit_mib}M");
+    let config = scratch.path("model.toml");
+    let run = scratch.path("run");
+    let base = |resolution: u32| {
+        let fields =
+            format!("resolutions = [32, 64, {resolution}, 0]\nsteps = 3\nwarmup_steps = 1\n");
+        std::fs::write(&config, fields).unwrap();
+        vec![
+            "train".to_string(),
+            "--data".into(),
+            path_str(&data).into(),
+            "--size".into(),
+            "32".into(),
+            "--config".into(),
+            path_str(&config).into(),
+            "--memory-limit".into(),
+            limit.clone(),
+            "--out".into(),
+            path_str(&run).into(),
+        ]
+    };
+    let dry_run = |resolution: u32| {
+        let mut args = base(resolution);
+        args.push("--dry-run".into());
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        orbit_nerf(&args).output().unwrap()
+    };
+    // The finest plane resolution whose plan stays within 90 % of the limit (the plan grows
+    // with its square).
+    let (mut low, mut high) = (64u32, 1024u32);
+    while high - low > 1 {
+        let middle = (low + high) / 2;
+        let out = dry_run(middle);
+        let fits = out.status.success()
+            && planned_mib(&text(&out), "train, save, score") <= 0.9 * limit_mib as f64;
+        *(if fits { &mut low } else { &mut high }) = middle;
+    }
+    let out = dry_run(low);
+    let printed = text(&out);
+    assert!(out.status.success(), "{printed}");
+    assert!(printed.contains("every stage fits"), "{printed}");
+    assert!(!run.exists(), "the dry run wrote {}", run.display());
+    let planned = planned_mib(&printed, "train, save, score");
+    assert!(planned > 0.85 * limit_mib as f64, "{printed}");
+
+    let capped = |args: &[String]| {
+        let mut command = std::process::Command::new("sh");
+        command
+            .arg("-c")
+            .arg(format!(
+                "ulimit -v {} && exec \"$0\" \"$@\"",
+                (limit_mib + PROCESS_ALLOWANCE_MIB) * 1024
+            ))
+            .arg(env!("CARGO_BIN_EXE_orbit-nerf"))
+            .args(args)
+            .env("MALLOC_ARENA_MAX", "1")
+            .current_dir(root());
+        command.output().unwrap()
+    };
+    let succeeded = |args: &[String]| {
+        let out = capped(args);
+        assert!(out.status.success(), "{args:?}: {}", text(&out));
+        text(&out)
+    };
+    succeeded(&base(low));
+    let checkpoint = std::fs::metadata(run.join("checkpoint.onrf"))
+        .unwrap()
+        .len();
+    // The cap leaves less room than a second copy of the model would take.
+    let room = (limit_mib as f64 - planned + PROCESS_ALLOWANCE_MIB as f64) * (1 << 20) as f64;
+    assert!(room < checkpoint as f64, "{room} vs {checkpoint}");
+    let strings = |args: &[&str]| args.iter().map(|a| a.to_string()).collect::<Vec<_>>();
+    let scored = succeeded(&strings(&[
+        "eval",
+        "--run",
+        path_str(&run),
+        "--memory-limit",
+        &limit,
+        "--renders",
+        path_str(&scratch.path("eval")),
+    ]));
+    assert!(scored.contains("mean PSNR"), "{scored}");
+    let mesh = scratch.path("mesh.ply");
+    let export = |threshold: &str| {
+        strings(&[
+            "export",
+            "mesh",
+            "--run",
+            path_str(&run),
+            "--out",
+            path_str(&mesh),
+            "--resolution",
+            "64",
+            "--threshold",
+            threshold,
+            "--memory-limit",
+            &limit,
+        ])
+    };
+    // Three steps leave no surface at the default density: the refusal says where the
+    // densities lie, and the export at their middle has a surface.
+    let refused = text(&capped(&export("1e9")));
+    let range = refused.split("run from ").nth(1).expect(&refused);
+    let (lowest, highest) = range.split_once(" to ").expect(&refused);
+    let highest = highest.split(';').next().unwrap();
+    let middle = (lowest.parse::<f64>().unwrap() + highest.parse::<f64>().unwrap()) / 2.0;
+    succeeded(&export(&middle.to_string()));
+    assert!(mesh.is_file());
 }
 
 /// A SPEED+ folder's camera, images and masks copied into `to` (labels and truth left out).

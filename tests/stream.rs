@@ -73,9 +73,8 @@ fn stream_api_stopped_by(
     resume: bool,
     events: &mut dyn FnMut(&Event<'_>),
 ) -> (Outcome, StreamState) {
-    let (config, mut state, restored) = if resume {
-        let (saved, config, state) = stream::resume(checkpoint, source).unwrap();
-        (config, state, Some(saved))
+    let (config, mut state) = if resume {
+        stream::resume(checkpoint, source).unwrap()
     } else {
         let config = stream::stream_config(
             &base_config(),
@@ -86,12 +85,12 @@ fn stream_api_stopped_by(
         )
         .unwrap();
         let state = StreamState::new(settings(), store as usize, source.info());
-        (config, state, None)
+        (config, state)
     };
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
     let mut trainer = Trainer::new(config, &mut arena).unwrap();
-    if let Some(saved) = &restored {
-        train::restore_checkpoint(checkpoint, saved, &mut trainer).unwrap();
+    if resume {
+        stream::restore(checkpoint, &mut trainer).unwrap();
     }
     let control = Control {
         stop,
@@ -118,7 +117,7 @@ fn fixed_set(
     state: &StreamState,
     source: &dyn FrameSource,
 ) -> Vec<FixedSetPoint> {
-    let (_, config, _) = stream::load(checkpoint).unwrap();
+    let (config, _) = stream::load(checkpoint).unwrap();
     let executor = RayonExecutor::new(2).unwrap();
     stream::fixed_set_curve(
         checkpoint,
@@ -556,7 +555,7 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
     assert_eq!(state.position, 14);
     assert_eq!(state.usable, 7);
     assert_eq!(state.bad.len(), 7);
-    let (_, config, _) = stream::load(&dir.join("bad.onrf")).unwrap();
+    let (config, _) = stream::load(&dir.join("bad.onrf")).unwrap();
     assert_eq!(config.max_frames, 4);
     let steps = checkpoint::load(&dir.join("bad.onrf"))
         .unwrap()
@@ -697,7 +696,7 @@ fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit(
     }
     // (On this machine 13 timed stops, 10 of them part-way through a frame's steps.)
     assert!(stops_heard > 0);
-    let (_, _, resumed) = stream::load(&parts).unwrap();
+    let (_, resumed) = stream::load(&parts).unwrap();
     assert_eq!(
         deterministic_part(&resumed),
         deterministic_part(&whole_state)

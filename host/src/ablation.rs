@@ -305,7 +305,7 @@ impl Experiment<'_> {
             samples_per_ray: samples as f64 / rays.max(1) as f64,
         };
         if let Some(path) = checkpoint {
-            train::save_checkpoint(path, &trainer)?;
+            train::save_checkpoint(path, &trainer, &[])?;
         }
         let (scores, metrics) = score(&mut trainer)?;
         curve.push(CurvePoint {
@@ -454,14 +454,9 @@ fn save_progress(
     trainer: &Trainer<'_>,
     figures: &FiguresSoFar,
 ) -> Result<()> {
-    let mut checkpoint = train::checkpoint_of(path, trainer)?;
     let bytes = postcard::to_allocvec(figures)
         .map_err(|e| HostError::invalid(path, format!("encoding the run's figures failed: {e}")))?;
-    checkpoint.sections.push(crate::checkpoint::Section {
-        name: FIGURES_SECTION.to_string(),
-        bytes,
-    });
-    crate::checkpoint::save(path, &checkpoint)
+    train::save_checkpoint(path, trainer, &[(FIGURES_SECTION, &bytes)])
 }
 
 /// Restore the progress checkpoint `path` into `trainer` (built from `config` with the run's
@@ -471,15 +466,16 @@ fn resume(
     config: &Config,
     trainer: &mut Trainer<'_>,
 ) -> Result<FiguresSoFar> {
-    let checkpoint = crate::checkpoint::load(path)?;
-    if train::checkpoint_config(path, &checkpoint)? != *config {
+    if crate::pipeline::checkpoint_config(path)? != *config {
         return Err(HostError::invalid(
             path,
             "holds the state of a run with another config: remove it to start this run over",
         ));
     }
-    train::restore_checkpoint(path, &checkpoint, trainer)?;
-    let figures: FiguresSoFar = postcard::from_bytes(checkpoint.section(FIGURES_SECTION)?)
-        .map_err(|e| HostError::field(path, FIGURES_SECTION, format!("cannot decode: {e}")))?;
-    Ok(figures)
+    let kept = train::restore_checkpoint(path, trainer, &[FIGURES_SECTION])?;
+    let figures = kept
+        .first()
+        .ok_or_else(|| HostError::field(path, FIGURES_SECTION, "missing section"))?;
+    postcard::from_bytes(&figures.bytes)
+        .map_err(|e| HostError::field(path, FIGURES_SECTION, format!("cannot decode: {e}")))
 }

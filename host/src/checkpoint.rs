@@ -255,6 +255,231 @@ pub fn decode(path: &Path, bytes: &[u8]) -> Result<Checkpoint> {
     Ok(checkpoint)
 }
 
+/// A checkpoint read section by section, each straight into where it belongs (a trainer's
+/// arena, say): the file's length and checksum are verified first with a fixed buffer, then
+/// the payload is walked in order, so restoring a model takes no copy of it in memory.
+pub struct SectionReader<R> {
+    path: PathBuf,
+    source: R,
+    /// Payload bytes not yet read.
+    left: u64,
+    /// Sections not yet announced by [`SectionReader::next_section`].
+    sections_left: u64,
+    /// Bytes of the section announced last that are not yet read.
+    pending: u64,
+    /// What wrote the checkpoint.
+    pub kind: String,
+    /// The writer's own encoded configuration.
+    pub config: Vec<u8>,
+}
+
+/// Bytes read at a time while the checksum is verified.
+const CHECKSUM_BUFFER: usize = 1 << 20;
+
+impl SectionReader<std::io::BufReader<std::fs::File>> {
+    /// Open and verify the checkpoint file at `path` ([`SectionReader::new`]).
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = std::fs::File::open(path).map_err(|e| HostError::io(path, e))?;
+        SectionReader::new(path, std::io::BufReader::new(file))
+    }
+}
+
+impl<R: std::io::Read + std::io::Seek> SectionReader<R> {
+    /// Verify the checkpoint in `source` (magic, version, length, checksum), refusing a bad
+    /// one with the message [`load`] gives (`path` names it), and read its kind and config.
+    pub fn new(path: &Path, mut source: R) -> Result<Self> {
+        use std::io::{Read, SeekFrom};
+        let io = |e| HostError::io(path, e);
+        let size = source.seek(SeekFrom::End(0)).map_err(io)?;
+        source.seek(SeekFrom::Start(0)).map_err(io)?;
+        let mut head = Vec::with_capacity(HEADER_LEN);
+        (&mut source)
+            .take(HEADER_LEN as u64)
+            .read_to_end(&mut head)
+            .map_err(io)?;
+        let version_ok = head.len() == HEADER_LEN
+            && head[..MAGIC.len()] == MAGIC
+            && head[8..12] == FORMAT_VERSION.to_le_bytes();
+        if !version_ok {
+            // A short, foreign or other-version file: `decode` says precisely what is wrong.
+            return Err(decode(path, &head)
+                .err()
+                .unwrap_or_else(|| HostError::invalid(path, "truncated")));
+        }
+        let declared = u64::from_le_bytes(head[12..20].try_into().expect("8-byte slice"));
+        let expected_crc = u32::from_le_bytes(head[20..24].try_into().expect("4-byte slice"));
+        let held = size - HEADER_LEN as u64;
+        if held < declared {
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "truncated: the header announces {declared} payload bytes, the file holds {held}"
+                ),
+            ));
+        }
+        if held > declared {
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "{} unexpected bytes after the {declared}-byte payload",
+                    held - declared
+                ),
+            ));
+        }
+        let mut crc = crc32fast::Hasher::new();
+        let mut buffer = vec![0u8; CHECKSUM_BUFFER];
+        loop {
+            let n = source.read(&mut buffer).map_err(io)?;
+            if n == 0 {
+                break;
+            }
+            crc.update(&buffer[..n]);
+        }
+        let actual_crc = crc.finalize();
+        if actual_crc != expected_crc {
+            return Err(HostError::invalid(
+                path,
+                format!(
+                    "checksum mismatch (stored {expected_crc:08x}, computed {actual_crc:08x}): the file is corrupt"
+                ),
+            ));
+        }
+        source
+            .seek(SeekFrom::Start(HEADER_LEN as u64))
+            .map_err(io)?;
+        let mut reader = SectionReader {
+            path: path.to_path_buf(),
+            source,
+            left: declared,
+            sections_left: 0,
+            pending: 0,
+            kind: String::new(),
+            config: Vec::new(),
+        };
+        let kind = reader.read_small("kind")?;
+        reader.kind = String::from_utf8(kind)
+            .map_err(|_| reader.malformed("the kind is not UTF-8".into()))?;
+        reader.config = reader.read_small("config")?;
+        reader.sections_left = reader.varint()?;
+        Ok(reader)
+    }
+
+    /// The next section's name and length in bytes (its bytes unread: read them with
+    /// [`read_section`](Self::read_section), or they are skipped), or `None` after the last.
+    pub fn next_section(&mut self) -> Result<Option<(String, u64)>> {
+        if self.pending > 0 {
+            let mut sink = std::io::sink();
+            self.copy(self.pending, &mut sink)?;
+            self.pending = 0;
+        }
+        if self.sections_left == 0 {
+            if self.left > 0 {
+                return Err(self.malformed(format!("{} bytes left after decoding", self.left)));
+            }
+            return Ok(None);
+        }
+        self.sections_left -= 1;
+        let name = self.read_small("section name")?;
+        let name = String::from_utf8(name)
+            .map_err(|_| self.malformed("a section name is not UTF-8".into()))?;
+        let len = self.varint()?;
+        if len > self.left {
+            return Err(self.malformed(format!(
+                "section `{name}` announces {len} bytes, {} are left",
+                self.left
+            )));
+        }
+        self.pending = len;
+        Ok(Some((name, len)))
+    }
+
+    /// Read the section announced last into `into`, which must be exactly its length.
+    pub fn read_section(&mut self, into: &mut [u8]) -> Result<()> {
+        if into.len() as u64 != self.pending {
+            return Err(self.malformed(format!(
+                "a section of {} bytes was read as {} bytes",
+                self.pending,
+                into.len()
+            )));
+        }
+        self.source
+            .read_exact(into)
+            .map_err(|e| HostError::io(&self.path, e))?;
+        self.left -= self.pending;
+        self.pending = 0;
+        Ok(())
+    }
+
+    /// The section announced last, read into a new buffer.
+    pub fn read_section_vec(&mut self) -> Result<Vec<u8>> {
+        let mut bytes = vec![0u8; self.pending as usize];
+        self.read_section(&mut bytes)?;
+        Ok(bytes)
+    }
+
+    /// The file (or name) the checkpoint is read from, for messages.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn malformed(&self, reason: String) -> HostError {
+        HostError::invalid(&self.path, format!("malformed payload: {reason}"))
+    }
+
+    /// A postcard varint (LEB128) of the payload.
+    fn varint(&mut self) -> Result<u64> {
+        let mut value = 0u64;
+        for shift in (0..70).step_by(7) {
+            let mut byte = [0u8];
+            self.take(&mut byte)?;
+            let bits = (byte[0] & 0x7f) as u64;
+            if shift == 63 && bits > 1 || shift > 63 {
+                return Err(self.malformed("a length overflows".into()));
+            }
+            value |= bits << shift;
+            if byte[0] & 0x80 == 0 {
+                return Ok(value);
+            }
+        }
+        Err(self.malformed("a length overflows".into()))
+    }
+
+    /// A length-prefixed byte string of the head (kind, config, section name), which the
+    /// writer keeps far below [`HEAD_BYTES`].
+    fn read_small(&mut self, what: &str) -> Result<Vec<u8>> {
+        let len = self.varint()?;
+        if len > HEAD_BYTES || len > self.left {
+            return Err(self.malformed(format!("the {what} announces {len} bytes")));
+        }
+        let mut bytes = vec![0u8; len as usize];
+        self.take(&mut bytes)?;
+        Ok(bytes)
+    }
+
+    /// Exactly `into.len()` payload bytes.
+    fn take(&mut self, into: &mut [u8]) -> Result<()> {
+        if into.len() as u64 > self.left {
+            return Err(self.malformed("it ends inside a value".into()));
+        }
+        self.source
+            .read_exact(into)
+            .map_err(|e| HostError::io(&self.path, e))?;
+        self.left -= into.len() as u64;
+        Ok(())
+    }
+
+    /// `len` payload bytes copied into `sink`.
+    fn copy(&mut self, len: u64, sink: &mut impl std::io::Write) -> Result<()> {
+        let copied = std::io::copy(&mut std::io::Read::take(&mut self.source, len), sink)
+            .map_err(|e| HostError::io(&self.path, e))?;
+        if copied != len {
+            return Err(self.malformed("it ends inside a section".into()));
+        }
+        self.left -= len;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -309,11 +534,47 @@ mod tests {
         }
     }
 
-    fn load_err(path: &Path, bytes: &[u8]) -> String {
+    /// The checkpoint at `path` read section by section with a [`SectionReader`].
+    fn walk(path: &Path) -> Result<Checkpoint> {
+        let mut reader = SectionReader::open(path)?;
+        let mut sections = Vec::new();
+        while let Some((name, _)) = reader.next_section()? {
+            let bytes = reader.read_section_vec()?;
+            sections.push(Section { name, bytes });
+        }
+        Ok(Checkpoint {
+            kind: reader.kind,
+            config: reader.config,
+            sections,
+        })
+    }
+
+    /// The errors of [`load`] and of [`walk`] on a file of `bytes`, both naming the file.
+    fn load_err(path: &Path, bytes: &[u8]) -> Errors {
         std::fs::write(path, bytes).unwrap();
-        let message = load(path).unwrap_err().to_string();
-        assert!(message.contains(&path.display().to_string()), "{message}");
-        message
+        let both = [
+            load(path).unwrap_err().to_string(),
+            walk(path).unwrap_err().to_string(),
+        ];
+        for message in &both {
+            assert!(message.contains(&path.display().to_string()), "{message}");
+        }
+        Errors(both)
+    }
+
+    /// Two readers' messages for one file; `contains` holds when each says it.
+    struct Errors([String; 2]);
+
+    impl Errors {
+        fn contains(&self, phrase: &str) -> bool {
+            self.0.iter().all(|message| message.contains(phrase))
+        }
+    }
+
+    impl std::fmt::Display for Errors {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            write!(f, "{} | {}", self.0[0], self.0[1])
+        }
     }
 
     #[test]
@@ -323,6 +584,7 @@ mod tests {
         assert_eq!(&bytes[..8], &MAGIC);
         let loaded = load(&path).unwrap();
         assert_eq!(loaded, sample());
+        assert_eq!(walk(&path).unwrap(), sample());
         assert_eq!(
             loaded.section("rng").unwrap(),
             0xDEAD_BEEF_u64.to_le_bytes()

@@ -31,29 +31,35 @@ pub type Part = (&'static str, u64);
 
 /// Fail, naming `what` and listing `parts`, when their sum exceeds `limit`.
 pub fn check_plan(what: &Path, parts: &[Part], limit: Option<u64>) -> Result<()> {
-    let total = parts
-        .iter()
-        .fold(0u64, |total, (_, bytes)| total.saturating_add(*bytes));
+    let total = total(parts);
     let Some(limit) = limit else {
         return Ok(());
     };
     if total <= limit {
         return Ok(());
     }
-    let listed: Vec<String> = parts
-        .iter()
-        .filter(|(_, bytes)| *bytes > 0)
-        .map(|(name, bytes)| format!("{name} {}", human(*bytes)))
-        .collect();
     Err(HostError::invalid(
         what,
         format!(
-            "needs {} ({}), more than the memory limit of {}; lower the sizes or raise --memory-limit",
-            human(total),
-            listed.join(", "),
+            "needs {}, more than the memory limit of {}; lower the sizes or raise --memory-limit",
+            describe(parts),
             human(limit)
         ),
     ))
+}
+
+/// The sum of `parts`, saturating.
+pub fn total(parts: &[Part]) -> u64 {
+    (parts.iter()).fold(0u64, |total, (_, bytes)| total.saturating_add(*bytes))
+}
+
+/// `parts` as their total and the non-empty ones: "1.2 GiB (planes 1.0 GiB, MLPs 0.2 GiB)".
+pub fn describe(parts: &[Part]) -> String {
+    let listed: Vec<String> = (parts.iter())
+        .filter(|(_, bytes)| *bytes > 0)
+        .map(|(name, bytes)| format!("{name} {}", human(*bytes)))
+        .collect();
+    format!("{} ({})", human(total(parts)), listed.join(", "))
 }
 
 /// The parts of the core's memory plan (the arena) as named byte counts; the parts that grow
@@ -76,14 +82,23 @@ pub fn arena_parts(plan: &MemoryPlan) -> [Part; 9] {
     ]
 }
 
-/// Check the arena of `plan` (its total, which also counts alignment and small parts)
-/// against `limit`, naming `what` in the error.
-pub fn check_arena(what: &Path, plan: &MemoryPlan, limit: Option<u64>) -> Result<()> {
+/// `resident` followed by the arena of `plan` (its parts and the rest of its total:
+/// alignment and small parts).
+pub fn with_arena(resident: &[Part], plan: &MemoryPlan) -> Vec<Part> {
     let parts = arena_parts(plan);
     let listed: u64 = parts.iter().map(|(_, bytes)| *bytes).sum();
-    let mut all = parts.to_vec();
-    all.push(("other", (plan.total as u64).saturating_sub(listed)));
-    check_plan(what, &all, limit)
+    let mut all = resident.to_vec();
+    all.extend(parts);
+    all.push((
+        "other arena parts",
+        (plan.total as u64).saturating_sub(listed),
+    ));
+    all
+}
+
+/// Check the arena of `plan` against `limit`, naming `what` in the error.
+pub fn check_arena(what: &Path, plan: &MemoryPlan, limit: Option<u64>) -> Result<()> {
+    check_plan(what, &with_arena(&[], plan), limit)
 }
 
 /// Folder levels below a dataset folder searched for images.

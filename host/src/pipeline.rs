@@ -20,6 +20,8 @@
 
 use crate::dataset::{self, Dataset, Frame};
 use crate::formats::{self, Format};
+use crate::geometry::extract::{self, SurfaceOptions};
+use crate::memory::Part;
 use crate::report::{
     self, Figures, ModelFigures, PoseRefinementFigures, TrainingFigures, ViewMetrics,
 };
@@ -80,14 +82,13 @@ impl DataSettings {
         }
     }
 
-    /// Check the memory the images will take (from their headers) against `limit` (default:
-    /// a share of the machine's memory) before they are read.
-    pub fn check_memory(&self, limit: Option<u64>) -> Result<()> {
-        memory::check_plan(
-            &self.data,
-            &memory::dataset_parts(&self.data, Some(self.size)),
-            memory::limit_or_default(limit),
-        )
+    /// Check the memory the images will take (from their headers), with the parts a command
+    /// holds `beside` them, against `limit` (default: a share of the machine's memory)
+    /// before they are read.
+    pub fn check_memory(&self, limit: Option<u64>, beside: &[Part]) -> Result<()> {
+        let mut parts = memory::dataset_parts(&self.data, Some(self.size)).to_vec();
+        parts.extend_from_slice(beside);
+        memory::check_plan(&self.data, &parts, memory::limit_or_default(limit))
     }
 
     /// Read the dataset, apply its masks (unless `masks` is off) and split it.
@@ -110,6 +111,20 @@ impl DataSettings {
 }
 
 impl SplitData {
+    /// What the data holds in memory while a model trains on it or is scored against it:
+    /// the images as loaded, and the held-out views' renders (RGB f32) kept for the report.
+    pub fn resident_parts(&self) -> [memory::Part; 2] {
+        let frames = &self.dataset.frames;
+        let loaded = (frames.iter())
+            .map(|f| (f.pixels.len() + f.mask.as_ref().map_or(0, Vec::len)) as u64)
+            .sum();
+        let renders = (self.test.iter())
+            .filter_map(|&i| frames.get(i))
+            .map(|f| f.camera.width as u64 * f.camera.height as u64 * 12)
+            .sum();
+        [("images loaded", loaded), ("held-out renders", renders)]
+    }
+
     /// The line saying where masks were applied, if anywhere.
     pub fn mask_note(&self) -> Option<String> {
         (self.masked > 0).then(|| {
@@ -392,18 +407,20 @@ pub fn stated_box(
     })
 }
 
-/// A trainer over a fresh arena (checked against `memory_limit`, or a share of the machine's
-/// memory, before it is allocated), with `frames` loaded into slots 0, 1, ...
+/// A trainer over a fresh arena, with `frames` loaded into slots 0, 1, ...; the arena and
+/// the `resident` parts the caller holds beside it (its data, its outputs) are checked
+/// against `memory_limit` (or a share of the machine's memory) before the arena is allocated.
 pub fn with_trainer<R, E: From<HostError>>(
     config: Config,
     memory_limit: Option<u64>,
+    resident: &[Part],
     frames: &[&Frame],
     f: impl FnOnce(&mut Trainer<'_>) -> std::result::Result<R, E>,
 ) -> std::result::Result<R, E> {
     let plan = MemoryPlan::new(&config);
-    memory::check_arena(
+    memory::check_plan(
         Path::new("the model"),
-        &plan,
+        &memory::with_arena(resident, &plan),
         memory::limit_or_default(memory_limit),
     )?;
     let mut arena = vec![0u8; plan.total];
@@ -413,34 +430,26 @@ pub fn with_trainer<R, E: From<HostError>>(
     f(&mut trainer)
 }
 
-/// Check what restoring the checkpoint at `path` takes (the file read whole, its sections
-/// decoded, the arena of its config) against `memory_limit` (default: a share of the
-/// machine's memory), from the head of the file, before the file is read.
-pub fn check_checkpoint_memory(path: &Path, memory_limit: Option<u64>) -> Result<()> {
-    let (kind, config, file_bytes) = crate::checkpoint::read_head(path)?;
-    let plan = MemoryPlan::new(&train::decode_config(path, &kind, &config)?);
-    let mut parts = memory::arena_parts(&plan).to_vec();
-    let listed: u64 = parts.iter().map(|(_, bytes)| *bytes).sum();
-    parts.push(("other", (plan.total as u64).saturating_sub(listed)));
-    parts.extend([
-        ("checkpoint file", file_bytes),
-        ("checkpoint sections", file_bytes),
-    ]);
-    memory::check_plan(path, &parts, memory::limit_or_default(memory_limit))
+/// The config of the trainer checkpoint at `path`, from the head of the file alone.
+pub fn checkpoint_config(path: &Path) -> Result<Config> {
+    let (kind, config, _) = crate::checkpoint::read_head(path)?;
+    train::decode_config(path, &kind, &config)
 }
 
-/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config),
-/// what it takes checked against `memory_limit` first ([`check_checkpoint_memory`]).
+/// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config,
+/// restored section by section: no copy of the model), the arena and the `resident` parts a
+/// command holds beside it checked against `memory_limit` first.
 pub fn with_checkpoint<R, E: From<HostError>>(
     path: &Path,
     memory_limit: Option<u64>,
+    resident: &[Part],
     f: impl FnOnce(&mut Trainer<'_>) -> std::result::Result<R, E>,
 ) -> std::result::Result<R, E> {
-    check_checkpoint_memory(path, memory_limit)?;
-    let checkpoint = crate::checkpoint::load(path)?;
-    let config = train::checkpoint_config(path, &checkpoint)?;
-    with_trainer(config, memory_limit, &[], |trainer| {
-        train::restore_checkpoint(path, &checkpoint, trainer)?;
+    let config = checkpoint_config(path)?;
+    let model = memory::with_arena(resident, &MemoryPlan::new(&config));
+    memory::check_plan(path, &model, memory::limit_or_default(memory_limit))?;
+    with_trainer(config, memory_limit, resident, &[], |trainer| {
+        train::restore_checkpoint(path, trainer, &[])?;
         f(trainer)
     })
 }
@@ -578,8 +587,17 @@ pub struct Pipeline {
     pub memory_limit: Option<u64>,
     /// Lines saying what was chosen and why (preset, masks, scene box), in order.
     pub notes: Vec<String>,
-    /// A resumed run's checkpoint.
-    resumed: Option<crate::checkpoint::Checkpoint>,
+    /// The run continues from its checkpoint.
+    resumed: bool,
+}
+
+/// One stage of a run's memory plan ([`Pipeline::memory_plan`]).
+pub struct PlannedStage {
+    pub name: String,
+    /// What the stage holds at its peak.
+    pub parts: Vec<Part>,
+    /// What the parts leave out or how a stage avoids a copy.
+    pub note: String,
 }
 
 /// How a [`Pipeline::train`] ended.
@@ -624,7 +642,7 @@ impl Pipeline {
             preset: chosen.preset.to_string(),
             memory_limit,
             notes,
-            resumed: None,
+            resumed: false,
         })
     }
 
@@ -640,8 +658,7 @@ impl Pipeline {
                 "no checkpoint to resume (start a run without --resume)",
             ));
         }
-        let checkpoint = crate::checkpoint::load(&path)?;
-        let config = train::checkpoint_config(&path, &checkpoint)?;
+        let config = checkpoint_config(&path)?;
         let mut notes = vec![format!(
             "run {}: data {} (preset {})",
             run.display(),
@@ -656,8 +673,36 @@ impl Pipeline {
             preset: record.preset,
             memory_limit,
             notes,
-            resumed: Some(checkpoint),
+            resumed: true,
         })
+    }
+
+    /// What a run of this pipeline holds in memory at each stage, from the parts its checks
+    /// use: training and scoring (the data, the held-out renders, the model's arena; the
+    /// checkpoint is written from the arena as it lies, no copy), then `export` of the
+    /// checkpoint with `surface` (the mesh comes on top, checked once its size is known).
+    pub fn memory_plan(&self, surface: &SurfaceOptions) -> [PlannedStage; 2] {
+        let arena = MemoryPlan::new(&self.config);
+        let model = memory::with_arena(&[], &arena);
+        [
+            PlannedStage {
+                name: "train, save, score".into(),
+                parts: memory::with_arena(&self.data.resident_parts(), &arena),
+                note: format!(
+                    "the checkpoint ({} at most) is written from the arena as it lies: no copy",
+                    memory::human(memory::total(&model))
+                ),
+            },
+            PlannedStage {
+                name: format!("export --resolution {}", surface.resolution),
+                parts: memory::with_arena(&extract::grid_parts(&self.config, surface), &arena),
+                note: format!(
+                    "plus the mesh, {} bytes per grid cell the surface crosses, checked before \
+                     it is built",
+                    extract::BYTES_PER_SURFACE_VERTEX
+                ),
+            },
+        ]
     }
 
     /// The record `train` writes beside the checkpoint.
@@ -676,7 +721,7 @@ impl Pipeline {
         observer: &mut dyn Observer,
     ) -> Result<Outcome> {
         let checkpoint_path = out.join(CHECKPOINT_FILE);
-        if self.resumed.is_some() {
+        if self.resumed {
             io::check_output_folder(out)?;
         } else {
             io::check_fresh_checkpoint(&checkpoint_path, options.replace, "training run")?;
@@ -692,10 +737,11 @@ impl Pipeline {
         let frames = self.data.training_frames();
         let config = self.config;
         // A resumed run's frames come from its checkpoint (and are checked against the data).
-        let fresh: &[&Frame] = if self.resumed.is_some() { &[] } else { &frames };
-        with_trainer(config, self.memory_limit, fresh, |trainer| {
-            if let Some(checkpoint) = &self.resumed {
-                train::restore_checkpoint(&checkpoint_path, checkpoint, trainer)?;
+        let fresh: &[&Frame] = if self.resumed { &[] } else { &frames };
+        let resident = self.data.resident_parts();
+        with_trainer(config, self.memory_limit, &resident, fresh, |trainer| {
+            if self.resumed {
+                train::restore_checkpoint(&checkpoint_path, trainer, &[])?;
                 check_same_frames(&checkpoint_path, trainer, &frames)?;
             }
             let end = options
@@ -714,7 +760,7 @@ impl Pipeline {
                 samples: tally.samples,
             };
             train::check_trained(out, trainer, tally_for_check)?;
-            train::save_checkpoint(&checkpoint_path, trainer)?;
+            train::save_checkpoint(&checkpoint_path, trainer, &[])?;
             record.write(out)?;
             io::write_atomic(
                 &out.join("config.toml"),
@@ -769,7 +815,7 @@ fn open_for_training(
     memory_limit: Option<u64>,
     notes: &mut Vec<String>,
 ) -> Result<SplitData> {
-    settings.check_memory(memory_limit)?;
+    settings.check_memory(memory_limit, &[])?;
     let data = settings.open()?;
     notes.extend(data.mask_note());
     if data.train.is_empty() {

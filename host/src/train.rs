@@ -1,7 +1,7 @@
 //! Training on the host: the model config as a file, a rayon executor for the core's chunks,
 //! loading a dataset into frame slots, evaluation renders, and checkpoints of the core's state.
 
-use crate::checkpoint::{Checkpoint, Section};
+use crate::checkpoint::{Checkpoint, Section, SectionReader};
 use crate::dataset::{Dataset, Frame};
 use crate::error::{HostError, Result};
 use crate::metrics::MetricError;
@@ -293,30 +293,14 @@ pub fn to_rgb8(image: &[f32]) -> Vec<u8> {
 /// Kind tag of training checkpoints.
 pub const CHECKPOINT_KIND: &str = "orbit-nerf trainer";
 
-/// Save the trainer's whole state (and its config) atomically.
-pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>) -> Result<()> {
+/// Save the trainer's whole state (and its config) atomically, with a command's own
+/// `extra` sections after the trainer's, streamed from the arena (no copy of the model).
+pub fn save_checkpoint(path: &Path, trainer: &Trainer<'_>, extra: &[(&str, &[u8])]) -> Result<()> {
     let config = postcard::to_allocvec(trainer.config())
         .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
-    crate::checkpoint::save_parts(path, CHECKPOINT_KIND, &config, &trainer.sections())
-}
-
-/// The trainer's whole state and config as a checkpoint (`path` names it in errors).
-pub fn checkpoint_of(path: &Path, trainer: &Trainer<'_>) -> Result<Checkpoint> {
-    let config = postcard::to_allocvec(trainer.config())
-        .map_err(|e| HostError::invalid(path, format!("config encoding failed: {e}")))?;
-    let sections = trainer
-        .sections()
-        .iter()
-        .map(|(name, bytes)| Section {
-            name: name.to_string(),
-            bytes: bytes.to_vec(),
-        })
-        .collect();
-    Ok(Checkpoint {
-        kind: CHECKPOINT_KIND.to_string(),
-        config,
-        sections,
-    })
+    let mut sections = trainer.sections().to_vec();
+    sections.extend_from_slice(extra);
+    crate::checkpoint::save_parts(path, CHECKPOINT_KIND, &config, &sections)
 }
 
 /// The config stored in a checkpoint.
@@ -340,22 +324,78 @@ pub fn decode_config(path: &Path, kind: &str, config: &[u8]) -> Result<Config> {
     Ok(config)
 }
 
-/// Restore every section of a checkpoint into a trainer built from its config.
+/// Restore the checkpoint file at `path` into `trainer` (built from the config it holds),
+/// each section read straight into the arena, so restoring takes no copy of the model. The
+/// sections named in `extra` (a command's own state) are returned in file order; any other
+/// section the trainer does not have, a missing one or one named twice is refused naming it.
 pub fn restore_checkpoint(
     path: &Path,
-    checkpoint: &Checkpoint,
     trainer: &mut Trainer<'_>,
-) -> Result<()> {
-    for name in trainer.sections().map(|(name, _)| name) {
-        let bytes = checkpoint
-            .section(name)
-            .map_err(|_| HostError::field(path, name, "missing section"))?
-            .to_vec();
-        trainer
-            .restore_section(name, &bytes)
-            .map_err(|e| HostError::field(path, name, e.to_string()))?;
+    extra: &[&str],
+) -> Result<Vec<Section>> {
+    let names: Vec<&str> = trainer.sections().iter().map(|(name, _)| *name).collect();
+    restore_sections(path, trainer, extra, &names)
+}
+
+/// [`restore_checkpoint`] of a file that holds some of the trainer's sections: those named in
+/// `required` must be there, the others keep what the trainer has.
+pub fn restore_sections(
+    path: &Path,
+    trainer: &mut Trainer<'_>,
+    extra: &[&str],
+    required: &[&str],
+) -> Result<Vec<Section>> {
+    let mut reader = SectionReader::open(path)?;
+    restore_from(&mut reader, trainer, extra, required)
+}
+
+/// [`restore_sections`] from an opened checkpoint (a file, or bytes in memory).
+pub fn restore_from<R: std::io::Read + std::io::Seek>(
+    reader: &mut SectionReader<R>,
+    trainer: &mut Trainer<'_>,
+    extra: &[&str],
+    required: &[&str],
+) -> Result<Vec<Section>> {
+    let path = reader.path().to_path_buf();
+    let path = path.as_path();
+    if decode_config(path, &reader.kind, &reader.config)? != *trainer.config() {
+        return Err(HostError::invalid(
+            path,
+            "holds a model of another config than the one restoring it",
+        ));
     }
-    Ok(())
+    let mut seen: Vec<String> = Vec::new();
+    let mut kept = Vec::new();
+    while let Some((name, len)) = reader.next_section()? {
+        if seen.contains(&name) {
+            return Err(HostError::field(path, &name, "named twice"));
+        }
+        seen.push(name.clone());
+        if extra.contains(&name.as_str()) {
+            let bytes = reader.read_section_vec()?;
+            kept.push(Section { name, bytes });
+            continue;
+        }
+        let mut failed = None;
+        let len = usize::try_from(len).unwrap_or(usize::MAX);
+        let restored = trainer.restore_section_with(&name, len, |target| {
+            reader
+                .read_section(target)
+                .map_err(|e| failed = Some(e))
+                .is_ok()
+        });
+        if let Some(error) = failed {
+            return Err(error);
+        }
+        restored.map_err(|e| HostError::field(path, &name, e.to_string()))?;
+    }
+    if let Some(missing) = required
+        .iter()
+        .find(|name| !seen.iter().any(|s| s == *name))
+    {
+        return Err(HostError::field(path, *missing, "missing section"));
+    }
+    Ok(kept)
 }
 
 /// Held-out quality of one view.

@@ -89,6 +89,11 @@ pub enum Error {
     },
     /// A checkpoint section name is not one of `Trainer::sections`.
     UnknownSection,
+    /// The caller could not supply a section's bytes (a read failed part-way).
+    SectionNotRead {
+        /// Section name.
+        name: &'static str,
+    },
     /// A checkpoint's frame slot holds an invalid camera or a frame larger than a slot.
     BadFrameSlot {
         /// Index of the bad slot.
@@ -139,6 +144,9 @@ impl core::fmt::Display for Error {
                 "checkpoint section `{name}` holds a non-finite value (element {index})"
             ),
             Error::UnknownSection => write!(f, "checkpoint section is not one of the trainer's"),
+            Error::SectionNotRead { name } => {
+                write!(f, "checkpoint section `{name}` could not be read")
+            }
             Error::BadFrameSlot { slot } => write!(
                 f,
                 "checkpoint frame slot {slot} holds an invalid camera or a frame larger than a slot"

@@ -84,7 +84,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
         train: train_idx,
         test: test_idx,
         ..
-    } = open_dataset(&settings, None)?;
+    } = open_dataset(&settings, None, &[])?;
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
     base.steps = args.warmup + args.timed_steps;
     base.warmup_steps = base.warmup_steps.min(base.steps);
@@ -112,7 +112,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     let mut report = String::new();
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
-        pipeline::with_trainer(config, None, &frames, |trainer| -> Fallible<()> {
+        pipeline::with_trainer(config, None, &[], &frames, |trainer| -> Fallible<()> {
             let warm = trainer.state().step + args.warmup;
             pipeline::train_steps(trainer, &executor, warm, &mut ())?;
             start_profile(trainer, args.profile);

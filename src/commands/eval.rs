@@ -5,9 +5,10 @@ use super::{
     open_dataset, parse_threads, print_scores,
 };
 use clap::Args;
+use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_host::pipeline::DataSettings;
 use orbit_nerf_host::report::{Figures, ModelFigures};
-use orbit_nerf_host::{io, pipeline, train, values};
+use orbit_nerf_host::{io, memory, pipeline, train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -40,8 +41,9 @@ pub struct EvalArgs {
     /// Replace renders and metrics.json already in --renders / --metrics.
     #[arg(long)]
     force: bool,
-    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
-    /// machine's available memory. Checked before anything large is allocated.
+    /// Largest memory the model, the data and the renders may take together (e.g. 8G, 512M);
+    /// default: 80 % of the machine's available memory. Checked before anything large is
+    /// allocated.
     #[arg(long, value_parser = values::byte_size)]
     memory_limit: Option<u64>,
 }
@@ -60,8 +62,12 @@ pub fn run(args: &EvalArgs) -> CliResult {
         },
         None => settings,
     };
-    pipeline::check_checkpoint_memory(&checkpoint, args.memory_limit)?;
-    let data = open_dataset(&settings, args.memory_limit)?;
+    let model = MemoryPlan::new(&pipeline::checkpoint_config(&checkpoint)?);
+    let data = open_dataset(
+        &settings,
+        args.memory_limit,
+        &memory::with_arena(&[], &model),
+    )?;
     let mut outputs: Vec<PathBuf> = Vec::new();
     if let Some(dir) = &args.renders {
         outputs.extend(train::render_files(dir, &data.test));
@@ -73,7 +79,7 @@ pub fn run(args: &EvalArgs) -> CliResult {
     println!("{}", data.scored_at());
     let scores = evaluate_checkpoint(
         &checkpoint,
-        args.threads,
+        (args.threads, args.memory_limit),
         &data,
         &data.test,
         (args.fit_steps, args.align_poses),

@@ -67,8 +67,9 @@ pub struct ExportArgs {
     /// Replace --out (and --preview) if it exists.
     #[arg(long)]
     force: bool,
-    /// Largest memory the model and the density grid may take (K/M/G/T suffixes); default:
-    /// 80 % of the machine's available memory. Checked before anything large is allocated.
+    /// Largest memory the model, the density grid and the mesh may take together (K/M/G/T
+    /// suffixes); default: 80 % of the machine's available memory. Checked before anything
+    /// large is allocated (the mesh once the densities are sampled, before it is built).
     #[arg(long, value_parser = values::byte_size)]
     memory_limit: Option<u64>,
     /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
@@ -159,8 +160,13 @@ pub fn run(command: &ExportCommand) -> CliResult {
         resolution: args.resolution,
         threshold: args.threshold,
     };
-    let mesh =
-        pipeline::with_checkpoint(checkpoint, args.memory_limit, |trainer| -> Fallible<_> {
+    // The model and the grid are checked together before either is allocated.
+    let grid = geometry::extract::grid_parts(&pipeline::checkpoint_config(checkpoint)?, &options);
+    let mesh = pipeline::with_checkpoint(
+        checkpoint,
+        args.memory_limit,
+        &grid,
+        |trainer| -> Fallible<_> {
             let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
             trainer.mean_embedding(&mut embedding);
             println!(
@@ -176,7 +182,8 @@ pub fn run(command: &ExportCommand) -> CliResult {
                 checkpoint,
                 memory::limit_or_default(args.memory_limit),
             )?)
-        })?;
+        },
+    )?;
     write(out, &mesh, format, points)?;
     if let Some(scene) = &args.chamfer_against {
         let truth = orbit_nerf_host::ablation_report::true_surface(scene)?;

@@ -18,6 +18,7 @@ use clap::Args;
 use indicatif::ProgressStyle;
 use orbit_nerf_core::Config;
 use orbit_nerf_host::dataset::Dataset;
+use orbit_nerf_host::memory::Part;
 use orbit_nerf_host::pipeline::{self, ChosenConfig, DataChoice, DataSettings, SplitData};
 use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
 use orbit_nerf_host::scene_box;
@@ -122,8 +123,9 @@ struct ModelArgs {
     /// at its corrected label (BARF's test-time alignment), instead of at its label.
     #[arg(long)]
     align_poses: bool,
-    /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
-    /// machine's available memory. Checked before anything large is allocated.
+    /// Largest memory a run may take: the data, the model's arena and the held-out renders
+    /// together (e.g. 8G, 512M); default: 80 % of the machine's available memory. Checked
+    /// before anything large is allocated (`train --dry-run` prints the plan).
     #[arg(long, value_parser = values::byte_size)]
     memory_limit: Option<u64>,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax in world units (wins over a config
@@ -219,8 +221,12 @@ const FIT_STEPS: u32 = orbit_nerf_host::train::DEFAULT_FIT_STEPS;
 
 /// Read the dataset of `settings` (its memory checked first against `memory_limit`) and
 /// print where masks were applied.
-fn open_dataset(settings: &DataSettings, memory_limit: Option<u64>) -> Fallible<SplitData> {
-    settings.check_memory(memory_limit)?;
+fn open_dataset(
+    settings: &DataSettings,
+    memory_limit: Option<u64>,
+    beside: &[Part],
+) -> Fallible<SplitData> {
+    settings.check_memory(memory_limit, beside)?;
     let data = settings.open()?;
     if let Some(note) = data.mask_note() {
         println!("{note}");
@@ -294,16 +300,18 @@ fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
 /// Score `views` of `data` with the checkpoint at `path` (restored with its own config), at
 /// their exact poses when the data has them, fitting each view's embedding (and with
 /// `align_poses` its pose correction) for `fit_steps`; renders go to `renders` when given.
+/// The model, the data and the renders are checked against `memory_limit` together first.
 fn evaluate_checkpoint(
     path: &Path,
-    threads: usize,
+    (threads, memory_limit): (usize, Option<u64>),
     data: &SplitData,
     views: &[usize],
     fit: (u32, bool),
     renders: Option<&Path>,
 ) -> Fallible<Vec<ViewScore>> {
     let executor = RayonExecutor::new(threads)?;
-    pipeline::with_checkpoint(path, None, |trainer| -> Fallible<_> {
+    let resident = data.resident_parts();
+    pipeline::with_checkpoint(path, memory_limit, &resident, |trainer| -> Fallible<_> {
         Ok(evaluate_at(
             trainer,
             &executor,

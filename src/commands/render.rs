@@ -88,7 +88,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
         return new_views(args);
     }
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
-    let data = open_dataset(&settings, None)?;
+    let data = open_dataset(&settings, None, &[])?;
     let views = if args.views.is_empty() {
         data.test.clone()
     } else {
@@ -98,7 +98,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
     io::check_new_files(files.iter().map(PathBuf::as_path), args.force)?;
     let scores = evaluate_checkpoint(
         &checkpoint,
-        args.threads,
+        (args.threads, None),
         &data,
         &views,
         (args.fit_steps, args.align_poses),
@@ -134,11 +134,11 @@ fn new_views(args: &RenderArgs) -> CliResult {
         dataset,
         train: train_idx,
         ..
-    } = open_dataset(&settings, None)?;
+    } = open_dataset(&settings, None, &[])?;
     let camera = dataset.frames[0].camera;
     let training: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
     let executor = RayonExecutor::new(args.threads)?;
-    pipeline::with_checkpoint(&checkpoint, None, |trainer| -> Fallible<()> {
+    pipeline::with_checkpoint(&checkpoint, None, &[], |trainer| -> Fallible<()> {
         let c = trainer.config();
         let centre = (Vec3::from_array(c.aabb_min) + Vec3::from_array(c.aabb_max)) * 0.5;
         let around = orbit::surroundings(&training, centre).ok_or_else(|| {

@@ -200,9 +200,9 @@ fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
 
 fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
     let checkpoint_path = args.out.join("checkpoint.onrf");
-    let (config, mut state, restored) = if args.resume {
-        let (checkpoint, config, state) = stream::resume(&checkpoint_path, source)?;
-        (config, state, Some(checkpoint))
+    let (config, mut state, resumed) = if args.resume {
+        let (config, state) = stream::resume(&checkpoint_path, source)?;
+        (config, state, true)
     } else {
         orbit_nerf_host::io::check_fresh_checkpoint(&checkpoint_path, args.force, "stream")?;
         let mut info = source.info().clone();
@@ -244,7 +244,7 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
         (
             config,
             StreamState::new(settings, config.max_frames as usize, source.info()),
-            None,
+            false,
         )
     };
     let executor = RayonExecutor::new(args.threads)?;
@@ -256,8 +256,8 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
     )?;
     let mut arena = vec![0u8; plan.total];
     let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
-    if let Some(checkpoint) = &restored {
-        train::restore_checkpoint(&checkpoint_path, checkpoint, &mut trainer)?;
+    if resumed {
+        stream::restore(&checkpoint_path, &mut trainer)?;
         println!(
             "resuming {} at arrival {} ({} steps done)",
             checkpoint_path.display(),

@@ -9,11 +9,12 @@ use super::{
 use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::{StepReport, Trainer};
-use orbit_nerf_host::io;
+use orbit_nerf_host::geometry::extract::SurfaceOptions;
 use orbit_nerf_host::pipeline::{
     self, CHECKPOINT_FILE, Flow, Observer, Outcome, Pipeline, StepTally, TrainOptions,
 };
-use std::path::PathBuf;
+use orbit_nerf_host::{io, memory};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -42,6 +43,11 @@ pub struct TrainArgs {
     /// continue with --resume.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     stop_after: Option<u32>,
+    /// Read the data, choose the config and print the memory plan of every stage (training,
+    /// saving, scoring, exporting) against the limit, then stop: nothing is trained or
+    /// written. Exits non-zero when a stage does not fit.
+    #[arg(long)]
+    dry_run: bool,
 }
 
 pub fn run(args: &TrainArgs) -> CliResult {
@@ -81,6 +87,9 @@ pub fn run(args: &TrainArgs) -> CliResult {
         args.model.threads
     );
     println!("{}", data.scored_at());
+    if args.dry_run {
+        return print_memory_plan(&pipeline);
+    }
     let mut progress = ProgressLines::new(args.resume)?;
     let outcome = pipeline.train(&args.out, &options, &mut progress)?;
     progress.bar.finish_and_clear();
@@ -115,6 +124,29 @@ pub fn run(args: &TrainArgs) -> CliResult {
             );
         }
     }
+    Ok(())
+}
+
+/// Print the run's memory plan against its limit (`train --dry-run`); fail naming the first
+/// stage that does not fit.
+fn print_memory_plan(pipeline: &Pipeline) -> CliResult {
+    let limit = memory::limit_or_default(pipeline.memory_limit);
+    let plan = pipeline.memory_plan(&SurfaceOptions::default());
+    println!(
+        "memory plan, limit {}:",
+        limit.map_or(
+            "none (the machine's memory is unknown)".into(),
+            memory::human
+        )
+    );
+    for stage in &plan {
+        println!("  {}: {}", stage.name, memory::describe(&stage.parts));
+        println!("    {}", stage.note);
+    }
+    for stage in &plan {
+        memory::check_plan(Path::new(&stage.name), &stage.parts, limit)?;
+    }
+    println!("dry run: every stage fits; nothing was trained or written");
     Ok(())
 }
 

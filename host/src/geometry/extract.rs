@@ -8,7 +8,7 @@ use crate::memory::{self, Part};
 use crate::train::to_rgb8;
 use fast_surface_nets::ndshape::{RuntimeShape, Shape};
 use fast_surface_nets::{SurfaceNetsBuffer, surface_nets};
-use orbit_nerf_core::{Config, Executor, Trainer};
+use orbit_nerf_core::{Config, Executor, MemoryPlan, Trainer};
 use std::path::Path;
 
 /// Grid samples along the box's longest side that `export` and the reports use by default.
@@ -100,19 +100,31 @@ impl Grid {
     }
 }
 
-/// Bytes of grid `extract_surface` allocates for `options` over the box `min`..`max`: the
-/// signed values and the surface-net index map (4 bytes each per grid point).
-pub fn grid_bytes(min: [f32; 3], max: [f32; 3], options: &SurfaceOptions) -> u64 {
-    Grid::new(min, max, options.resolution.clamp(8, MAX_RESOLUTION))
-        .points()
-        .saturating_mul(8)
+/// What [`extract_surface`] holds beside the model before the surface is known, for `options`
+/// over the scene box of `config`: the signed density grid and the surface-net index map (4
+/// bytes each per grid point).
+pub fn grid_parts(config: &Config, options: &SurfaceOptions) -> [Part; 2] {
+    let grid = Grid::new(
+        config.aabb_min,
+        config.aabb_max,
+        options.resolution.clamp(8, MAX_RESOLUTION),
+    );
+    let points = grid.points().saturating_mul(4);
+    [("density grid", points), ("surface-net index map", points)]
 }
+
+/// Bytes per surface vertex of the mesh and its working buffers, an upper bound: surface
+/// nets' position, normal, grid point and stride (40) and up to 18 indices (72); the mesh's
+/// position, normal and colour, the colour rays' origin, direction and RGB (63); up to six
+/// triangles (72).
+pub const BYTES_PER_SURFACE_VERTEX: u64 = 256;
 
 /// The surface where the field's density crosses the threshold, inside the trainer's scene
 /// box, with unit outward normals and colours: each vertex's colour is what the field renders
 /// (appearance `embedding`) on a ray that starts two grid steps outside the surface along the
 /// normal and looks back along it, i.e. the surface seen head-on from outside. `file` names
-/// the checkpoint in errors; `limit` is the memory limit the grid is checked against first.
+/// the checkpoint in errors; `limit` is the memory limit the model, the grid and then the mesh
+/// (its size known from the sampled densities) are checked against before they are built.
 /// The surface is closed at the box: where the field is dense at a face, it is cut there.
 /// Fails when no surface crosses the threshold, saying what the densities were.
 pub fn extract_surface<E: Executor>(
@@ -141,10 +153,7 @@ pub fn extract_surface<E: Executor>(
     let c = *trainer.config();
     let grid = Grid::new(c.aabb_min, c.aabb_max, options.resolution);
     let [nx, ny, nz] = grid.counts;
-    let parts: [Part; 2] = [
-        ("density grid", grid.points().saturating_mul(4)),
-        ("surface-net index map", grid.points().saturating_mul(4)),
-    ];
+    let mut parts = memory::with_arena(&grid_parts(&c, options), &MemoryPlan::new(&c));
     memory::check_plan(file, &parts, limit)?;
     let shape = RuntimeShape::<u32, 3>::new([nx, ny, nz]);
     // Signed values: ln(threshold) - ln(sigma), negative inside. The log keeps the linear
@@ -183,6 +192,18 @@ pub fn extract_surface<E: Executor>(
             }
         }
     }
+    // One vertex per cell the surface crosses: the mesh's size is known before it is built.
+    let surface_cells = surface_cells(&signed, grid.counts);
+    parts.push((
+        "mesh and its buffers",
+        surface_cells.saturating_mul(BYTES_PER_SURFACE_VERTEX),
+    ));
+    memory::check_plan(file, &parts, limit).map_err(|e| {
+        HostError::invalid(
+            file,
+            format!("{e} (the surface crosses {surface_cells} grid cells: lower --resolution)"),
+        )
+    })?;
     let mut nets = SurfaceNetsBuffer::default();
     surface_nets(&signed, &shape, [0; 3], [nx - 1, ny - 1, nz - 1], &mut nets);
     drop(signed);
@@ -229,6 +250,27 @@ pub fn extract_surface<E: Executor>(
             .map(|t| [t[0], t[1], t[2]])
             .collect(),
     })
+}
+
+/// Cells of the grid of `counts` samples (values `signed`, x fastest) whose corners are not
+/// all on one side of zero: where surface nets places a vertex.
+fn surface_cells(signed: &[f32], counts: [u32; 3]) -> u64 {
+    let [nx, ny, nz] = counts.map(|c| c as usize);
+    let at = |x: usize, y: usize, z: usize| signed[x + nx * (y + ny * z)] < 0.0;
+    let mut cells = 0u64;
+    for z in 0..nz - 1 {
+        for y in 0..ny - 1 {
+            for x in 0..nx - 1 {
+                let inside = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)]
+                    .iter()
+                    .flat_map(|&(dx, dy, _)| [at(x + dx, y + dy, z), at(x + dx, y + dy, z + 1)])
+                    .filter(|&inside| inside)
+                    .count();
+                cells += u64::from(inside != 0 && inside != 8);
+            }
+        }
+    }
+    cells
 }
 
 /// The field's colour seen head-on from outside each vertex.

@@ -29,7 +29,7 @@ pub use source::{
     WatchedFolder,
 };
 
-use crate::checkpoint::{self, Checkpoint, Section};
+use crate::checkpoint;
 use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use crate::pipeline::StepTally;
@@ -700,11 +700,12 @@ fn save_snapshot(checkpoint_path: &Path, index: usize, trainer: &Trainer<'_>) ->
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|e| HostError::io(dir, e))?;
     }
-    let mut snapshot = train::checkpoint_of(&path, trainer)?;
-    snapshot
-        .sections
-        .retain(|s| SNAPSHOT_SECTIONS.contains(&s.name.as_str()));
-    checkpoint::save(&path, &snapshot)
+    let config = postcard::to_allocvec(trainer.config())
+        .map_err(|e| HostError::invalid(&path, format!("config encoding failed: {e}")))?;
+    let sections: Vec<(&str, &[u8])> = (trainer.sections().into_iter())
+        .filter(|(name, _)| SNAPSHOT_SECTIONS.contains(name))
+        .collect();
+    checkpoint::save_parts(&path, train::CHECKPOINT_KIND, &config, &sections)
 }
 
 /// A point of the curve on the fixed set: every held-out view of the stream, scored with the
@@ -739,8 +740,7 @@ pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
     let mut points = Vec::with_capacity(state.curve.len());
     for index in 0..state.curve.len() {
         let path = snapshot_path(checkpoint_path, index);
-        let snapshot = checkpoint::load(&path)?;
-        if train::checkpoint_config(&path, &snapshot)? != *config {
+        if crate::pipeline::checkpoint_config(&path)? != *config {
             return Err(HostError::invalid(
                 &path,
                 "written by a stream with another config",
@@ -748,14 +748,7 @@ pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
         }
         arena.fill(0);
         let mut trainer = Trainer::new(*config, &mut arena).map_err(|e| core_error(&path, e))?;
-        for name in SNAPSHOT_SECTIONS {
-            let bytes = snapshot
-                .section(name)
-                .map_err(|_| HostError::field(&path, name, "missing section"))?;
-            trainer
-                .restore_section(name, bytes)
-                .map_err(|e| HostError::field(&path, name, e.to_string()))?;
-        }
+        train::restore_sections(&path, &mut trainer, &[], &SNAPSHOT_SECTIONS)?;
         let (metrics, views) = held_out_views_quality(&mut trainer, executor, source, state)?;
         points.push(FixedSetPoint { metrics, views });
         on_point(index);
@@ -768,25 +761,25 @@ pub const STREAM_SECTION: &str = "stream";
 
 /// Write the trainer's state and the stream's state to `path` atomically.
 pub fn save(path: &Path, trainer: &Trainer<'_>, state: &StreamState) -> Result<()> {
-    let mut checkpoint = train::checkpoint_of(path, trainer)?;
     let bytes = postcard::to_allocvec(state)
         .map_err(|e| HostError::invalid(path, format!("cannot encode the stream state: {e}")))?;
-    checkpoint.sections.push(Section {
-        name: STREAM_SECTION.into(),
-        bytes,
-    });
-    checkpoint::save(path, &checkpoint)
+    train::save_checkpoint(path, trainer, &[(STREAM_SECTION, &bytes)])
 }
 
-/// A stream checkpoint: the checkpoint (for `train::restore_checkpoint`), its config and the
-/// stream's state.
-pub fn load(path: &Path) -> Result<(Checkpoint, Config, StreamState)> {
-    let checkpoint = checkpoint::load(path)?;
-    let config = train::checkpoint_config(path, &checkpoint)?;
-    let bytes = checkpoint
-        .section(STREAM_SECTION)
-        .map_err(|_| HostError::field(path, STREAM_SECTION, "missing: not a stream checkpoint"))?;
-    let state: StreamState = postcard::from_bytes(bytes)
+/// A stream checkpoint's config and the stream's state, read without the model (restore it
+/// with [`restore`]).
+pub fn load(path: &Path) -> Result<(Config, StreamState)> {
+    let mut reader = checkpoint::SectionReader::open(path)?;
+    let config = train::decode_config(path, &reader.kind, &reader.config)?;
+    let missing = || HostError::field(path, STREAM_SECTION, "missing: not a stream checkpoint");
+    let bytes = loop {
+        match reader.next_section()? {
+            Some((name, _)) if name == STREAM_SECTION => break reader.read_section_vec()?,
+            Some(_) => continue,
+            None => return Err(missing()),
+        }
+    };
+    let state: StreamState = postcard::from_bytes(&bytes)
         .map_err(|e| HostError::field(path, STREAM_SECTION, format!("cannot decode: {e}")))?;
     if state.slot_positions.len() != config.max_frames as usize {
         return Err(HostError::field(
@@ -795,16 +788,23 @@ pub fn load(path: &Path) -> Result<(Checkpoint, Config, StreamState)> {
             "slot count differs from the config's max_frames",
         ));
     }
-    Ok((checkpoint, config, state))
+    Ok((config, state))
 }
 
-/// Load the stream checkpoint at `path` and position `source` to continue it. Refused when the
+/// Restore the model of the stream checkpoint `path` into `trainer` (built from its config),
+/// section by section.
+pub fn restore(path: &Path, trainer: &mut Trainer<'_>) -> Result<()> {
+    train::restore_checkpoint(path, trainer, &[STREAM_SECTION]).map(drop)
+}
+
+/// Read the stream checkpoint at `path` (config and state; the model is restored with
+/// [`restore`]) and position `source` to continue it. Refused when the
 /// checkpoint was written by a stream from another source.
 pub fn resume<S: FrameSource + ?Sized>(
     path: &Path,
     source: &mut S,
-) -> Result<(Checkpoint, Config, StreamState)> {
-    let (checkpoint, config, state) = load(path)?;
+) -> Result<(Config, StreamState)> {
+    let (config, state) = load(path)?;
     let identity = &source.info().identity;
     if state.source != *identity {
         return Err(HostError::field(
@@ -817,7 +817,7 @@ pub fn resume<S: FrameSource + ?Sized>(
         ));
     }
     source.seek(state.position, &state.arrived)?;
-    Ok((checkpoint, config, state))
+    Ok((config, state))
 }
 
 /// A point of the offline reference's curve: its quality on the stream's held-out views

@@ -73,6 +73,23 @@ impl<'a> Trainer<'a> {
 
     /// Restore one section written by `sections` for the same config. The size must match.
     pub fn restore_section(&mut self, name: &str, data: &[u8]) -> Result<(), Error> {
+        self.restore_section_with(name, data.len(), |target| {
+            target.copy_from_slice(data);
+            true
+        })
+    }
+
+    /// [`restore_section`](Self::restore_section) of a section of `len` bytes that `fill`
+    /// writes straight into the trainer's own storage (from a file, say), so that restoring
+    /// takes no copy of the model. `fill` returns whether it filled the whole slice. A section
+    /// that was not filled, or that fails the checks, is left zeroed (no parameters, no
+    /// occupied frame slot), never half-restored.
+    pub fn restore_section_with(
+        &mut self,
+        name: &str,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]) -> bool,
+    ) -> Result<(), Error> {
         macro_rules! find {
             ($trainer:ident; $($name:literal => $($field:ident).+,)*) => {
                 match name {
@@ -81,39 +98,51 @@ impl<'a> Trainer<'a> {
                 }
             };
         }
+        let max_pixels = self.frames.max_pixels;
         let (name, target): (&'static str, &mut [u8]) = with_section_table!(find, self);
-        if target.len() != data.len() {
+        if target.len() != len {
             return Err(Error::BadSection {
                 name,
                 expected: target.len(),
-                got: data.len(),
+                got: len,
             });
         }
-        if let Some(index) = first_non_finite(name, data) {
-            return Err(Error::NonFiniteSection { name, index });
+        let checked = if !fill(target) {
+            Err(Error::SectionNotRead { name })
+        } else if let Some(index) = first_non_finite(name, target) {
+            Err(Error::NonFiniteSection { name, index })
+        } else if name == "frame_meta" {
+            check_frame_slots(target, max_pixels)
+        } else {
+            Ok(())
+        };
+        if checked.is_err() {
+            target.fill(0);
         }
-        if name == "frame_meta" {
-            // Slot sizes index the pixel store: reject any that would not fit.
-            let size = core::mem::size_of::<FrameMeta>();
-            for (slot, raw) in data.chunks_exact(size).enumerate() {
-                let meta: FrameMeta = bytemuck::pod_read_unaligned(raw);
-                let pixels = meta.width as usize * meta.height as usize;
-                if meta.occupied != 0
-                    && (!meta.camera().is_valid()
-                        || pixels > self.frames.max_pixels
-                        || meta.width > u16::MAX as u32
-                        || meta.height > u16::MAX as u32)
-                {
-                    return Err(Error::BadFrameSlot { slot });
-                }
-            }
-        }
-        target.copy_from_slice(data);
         if name == "frame_meta" {
             self.frames.rebuild_occupied();
         }
-        Ok(())
+        checked
     }
+}
+
+/// Refuse frame slots whose camera is invalid or whose sizes would not index a pixel store of
+/// `max_pixels` per slot.
+fn check_frame_slots(meta: &[u8], max_pixels: usize) -> Result<(), Error> {
+    let size = core::mem::size_of::<FrameMeta>();
+    for (slot, raw) in meta.chunks_exact(size).enumerate() {
+        let meta: FrameMeta = bytemuck::pod_read_unaligned(raw);
+        let pixels = meta.width as usize * meta.height as usize;
+        if meta.occupied != 0
+            && (!meta.camera().is_valid()
+                || pixels > max_pixels
+                || meta.width > u16::MAX as u32
+                || meta.height > u16::MAX as u32)
+        {
+            return Err(Error::BadFrameSlot { slot });
+        }
+    }
+    Ok(())
 }
 
 /// The first non-finite element of a section of parameters, moments or densities (f16
@@ -136,17 +165,25 @@ mod tests {
     use super::super::tests::{put_test_frame, small_config};
     use super::*;
 
+    /// Two trainers of the small config in `arena`: one holding a test frame, one fresh.
+    fn trainer_with_a_frame_and_a_fresh_one(arena: &mut [u8]) -> (Trainer<'_>, Trainer<'_>) {
+        let config = small_config();
+        let plan = MemoryPlan::new(&config);
+        let (first, second) = arena.split_at_mut(arena.len() / 2);
+        let mut trainer = Trainer::new(config, &mut first[..plan.total]).unwrap();
+        put_test_frame(&mut trainer);
+        (
+            trainer,
+            Trainer::new(config, &mut second[..plan.total]).unwrap(),
+        )
+    }
+
     /// Every section restores into a fresh trainer; a frame slot larger than a slot holds, or
     /// an unknown section, is refused with an error that says which.
     #[test]
     fn sections_round_trip_and_bad_frame_slots_are_named() {
-        let config = small_config();
-        let plan = MemoryPlan::new(&config);
         let mut arena = [0u8; 1 << 20];
-        let (first, second) = arena.split_at_mut(1 << 19);
-        let mut trainer = Trainer::new(config, &mut first[..plan.total]).unwrap();
-        put_test_frame(&mut trainer);
-        let mut copy = Trainer::new(config, &mut second[..plan.total]).unwrap();
+        let (trainer, mut copy) = trainer_with_a_frame_and_a_fresh_one(&mut arena);
         for (name, bytes) in trainer.sections() {
             copy.restore_section(name, bytes).unwrap();
         }
@@ -164,5 +201,46 @@ mod tests {
             copy.restore_section("frame_metadata", &bytes),
             Err(Error::UnknownSection)
         );
+        // The refused slot table is left empty, not half-restored: no slot is occupied.
+        assert!(copy.frames.meta.iter().all(|m| m.occupied == 0));
+    }
+
+    /// A section filled in place is the section restored from a slice; one whose filler
+    /// fails, or that holds a NaN, is refused naming it and left zeroed.
+    #[test]
+    fn a_section_filled_in_place_restores_or_is_left_zeroed() {
+        let mut arena = [0u8; 1 << 20];
+        let (trainer, mut copy) = trainer_with_a_frame_and_a_fresh_one(&mut arena);
+        let mlp = trainer.sections()[5];
+        assert_eq!(mlp.0, "mlp");
+        let len = mlp.1.len();
+        copy.restore_section_with("mlp", len, |target| {
+            target.copy_from_slice(mlp.1);
+            true
+        })
+        .unwrap();
+        assert_eq!(copy.sections()[5], mlp);
+        let fill_half = |target: &mut [u8]| {
+            target[..len / 2].fill(1);
+            false
+        };
+        assert_eq!(
+            copy.restore_section_with("mlp", len, fill_half),
+            Err(Error::SectionNotRead { name: "mlp" })
+        );
+        assert!(copy.sections()[5].1.iter().all(|&b| b == 0));
+        let nan = |target: &mut [u8]| {
+            target.copy_from_slice(mlp.1);
+            target[4..8].copy_from_slice(&f32::NAN.to_ne_bytes());
+            true
+        };
+        assert_eq!(
+            copy.restore_section_with("mlp", len, nan),
+            Err(Error::NonFiniteSection {
+                name: "mlp",
+                index: 1
+            })
+        );
+        assert!(copy.sections()[5].1.iter().all(|&b| b == 0));
     }
 }
