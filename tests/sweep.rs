@@ -386,3 +386,106 @@ fn a_small_tradeoff_writes_its_report_and_equals_its_variants_trained_one_by_one
     assert_eq!(bytes(&out.join("tradeoff.toml")), description);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The image-count study (issue 41): `ablate --image-counts` writes its sweep description into
+/// `--out` and runs one task per count and model. Each model holds only its own count of
+/// training frames (the test set's never enter its frame store, so never a training batch),
+/// every task is scored on all views of the same separate test set, the tasks of a model differ
+/// only in the count, and `sweep.md` has the image-count table and its plots.
+#[test]
+fn an_image_count_study_trains_each_count_and_scores_one_separate_test_set() {
+    use orbit_nerf_core::{MemoryPlan, Trainer};
+    let dir = temp_dir("image-counts");
+    let out = dir.join("out");
+    let study = || {
+        orbit_nerf(&[
+            "ablate",
+            "--image-counts",
+            "6,3",
+            "--test-frames",
+            "8",
+            "--scene",
+            "synthetic",
+            "--size",
+            "32",
+            "--preset",
+            "tiny",
+            "--steps",
+            "6",
+            "--fit-steps",
+            "2",
+            "--threads",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap()
+    };
+    let run = study();
+    let text = output_text(&run);
+    assert!(run.status.success(), "{text}");
+    assert!(out.join("image-counts.toml").is_file());
+    let report = std::fs::read_to_string(out.join("sweep.md")).unwrap();
+    assert!(report.contains("## Image-count study"), "{report}");
+    assert!(
+        report.contains("separate test set `lightbox-test`"),
+        "{report}"
+    );
+    for metric in ["psnr", "ssim", "jnb"] {
+        assert!(out.join(format!("image_counts_{metric}.png")).is_file());
+    }
+    let records: Vec<serde_json::Value> = (0..4)
+        .map(|i| {
+            serde_json::from_slice(&bytes(&out.join(format!("tasks/{i}/result.json")))).unwrap()
+        })
+        .collect();
+    for (i, record) in records.iter().enumerate() {
+        let settings = &record["settings"];
+        let frames = settings["frames"].as_u64().unwrap() as usize;
+        // Tasks 0 and 1 train on 3 frames (the counts ascending), 2 and 3 on 6.
+        assert_eq!(frames, if i < 2 { 3 } else { 6 }, "task {i}");
+        assert_eq!(
+            settings["test"], "scene lightbox-test, 8 frames",
+            "task {i}"
+        );
+        assert_eq!(record["held_out_views"], 8, "task {i}");
+        let checkpoint = out.join(format!("tasks/{i}/checkpoint.onrf"));
+        let config = orbit_nerf_host::pipeline::checkpoint_config(&checkpoint).unwrap();
+        let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+        let mut trainer = Trainer::new(config, &mut arena).unwrap();
+        orbit_nerf_host::train::restore_checkpoint(&checkpoint, &mut trainer, &[]).unwrap();
+        assert_eq!(trainer.frames().len(), frames, "task {i}'s frame store");
+    }
+    // The same model at both counts: the same settings but the count.
+    for (small, large) in [(0, 2), (1, 3)] {
+        let mut a = records[small]["settings"].clone();
+        let b = &records[large]["settings"];
+        a["frames"] = b["frames"].clone();
+        assert_eq!(&a, b, "tasks {small} and {large}");
+        assert_eq!(records[small]["variant"], records[large]["variant"]);
+    }
+    // Run again: every task finished, nothing retrained; another study in the folder is refused.
+    let again = study();
+    assert!(
+        output_text(&again).contains("4 finished earlier"),
+        "{}",
+        output_text(&again)
+    );
+    let other = orbit_nerf(&[
+        "ablate",
+        "--image-counts",
+        "3,12",
+        "--scene",
+        "synthetic",
+        "--size",
+        "32",
+        "--out",
+        out.to_str().unwrap(),
+    ])
+    .output()
+    .unwrap();
+    assert!(!other.status.success());
+    assert!(output_text(&other).contains("another image-count study"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -17,12 +17,12 @@ use orbit_nerf_host::formats::Format;
 use orbit_nerf_host::presets;
 use orbit_nerf_host::report::{self, ModelOutcome, NoiseLevelResult};
 use orbit_nerf_host::sim::scene::LabelNoise;
-use orbit_nerf_host::sweep::{NoiseLevels, SweepDescription};
+use orbit_nerf_host::sweep::{FrameCounts, NoiseLevels, SweepDescription};
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct AblateArgs {
-    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp, inspection) or a scene file.
+    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp, inspection; lightbox-test: a separate test set) or a scene file.
     #[arg(long, default_value = "lightbox")]
     pub scene: String,
     /// Use this dataset (SPEED+/SHIRT/simulator, NeRF-synthetic or nerfstudio) instead of simulating one.
@@ -60,6 +60,20 @@ pub struct AblateArgs {
     /// label's position, mm); default: the paper's five.
     #[arg(long, value_delimiter = ',', default_values_t = TRANSLATION_LEVELS_MM)]
     pub translation_levels: Vec<f32>,
+    /// The paper's image-count study: baseline and ours + pose trained on each of these
+    /// numbers of --scene frames (e.g. 25,50,100,200,400) and scored on the same separate
+    /// test set (--test-scene), as a sweep in --out (`image-counts.toml`, its tasks, sweep.md
+    /// with the image-count table and plots). Rerunning continues the unfinished tasks.
+    #[arg(long, value_delimiter = ',', conflicts_with_all = ["data", "test_data", "pose_noise", "holdout"], value_parser = |text: &str| orbit_nerf_host::values::count_in(text, 2..=100_000))]
+    pub image_counts: Vec<usize>,
+    /// The separate test set of the image-count study: a scene preset or scene file,
+    /// simulated with exact labels.
+    #[arg(long, default_value = "lightbox-test")]
+    pub test_scene: String,
+    /// Frames of the image-count study's test set (default: the test scene's own; the paper
+    /// has 200).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub test_frames: Option<u32>,
     /// Every N-th view is held out.
     #[arg(long, default_value_t = 8, value_parser = |text: &str| orbit_nerf_host::values::count_in(text, 1..=1_000_000))]
     pub holdout: usize,
@@ -105,6 +119,8 @@ pub enum Sweep {
 pub fn run(args: &AblateArgs) -> Fallible<()> {
     if args.pose_noise {
         sweep(args)
+    } else if !args.image_counts.is_empty() {
+        image_counts(args)
     } else {
         ablate(args)
     }
@@ -292,7 +308,7 @@ fn run_level(
 fn sweep(args: &AblateArgs) -> Fallible<()> {
     let description = SweepDescription {
         scene: Some("synthetic".into()),
-        frames: Some(args.frames),
+        frames: Some(FrameCounts::One(args.frames)),
         size: Some(args.size.into()),
         preset: args.preset.clone(),
         config: (args.config.as_ref()).map(|p| p.display().to_string()),
@@ -335,4 +351,70 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
     orbit_nerf_host::io::write_atomic(&args.out.join("pose_noise.md"), text.as_bytes())?;
     println!("{text}");
     Ok(())
+}
+
+/// The image-count study as a sweep description in `--out` (`image-counts.toml`), run here
+/// by the sweep runner: one task per count and model, every task scored on the same test set.
+fn image_counts(args: &AblateArgs) -> Fallible<()> {
+    let absolute =
+        |path: &Path| -> Fallible<String> { Ok(std::path::absolute(path)?.display().to_string()) };
+    // A scene file is named by its absolute path: the description lives in --out.
+    let scene = |name: &str| -> Fallible<String> {
+        if orbit_nerf_host::sim::scene::preset_names().any(|p| p == name) {
+            Ok(name.to_string())
+        } else {
+            absolute(Path::new(name))
+        }
+    };
+    let quoted = |text: &str| toml::Value::String(text.to_string()).to_string();
+    let counts: Vec<String> = args.image_counts.iter().map(usize::to_string).collect();
+    let mut description = format!(
+        "# ablate --image-counts: baseline and ours + pose per training-image count, scored on\n# the separate test set `{}`.\nscene = {}\nframes = [{}]\ntest_scene = {}\nsize = {}\nfit_steps = {}\nmasks = {}\n",
+        args.test_scene,
+        quoted(&scene(&args.scene)?),
+        counts.join(", "),
+        quoted(&scene(&args.test_scene)?),
+        args.size,
+        args.fit_steps,
+        !args.no_masks
+    );
+    if let Some(frames) = args.test_frames {
+        description.push_str(&format!("test_frames = {frames}\n"));
+    }
+    if let Some(preset) = &args.preset {
+        description.push_str(&format!("preset = {}\n", quoted(preset)));
+    }
+    if let Some(config) = &args.config {
+        description.push_str(&format!("config = {}\n", quoted(&absolute(config)?)));
+    }
+    if let Some(steps) = args.steps {
+        description.push_str(&format!("steps = {steps}\n"));
+    }
+    if let Some(([x0, y0, z0], [x1, y1, z1])) = args.scene_box {
+        description.push_str(&format!("scene_box = \"{x0},{y0},{z0},{x1},{y1},{z1}\"\n"));
+    }
+    for model in [BASELINE, APPEARANCE_POSE] {
+        description.push_str(&format!(
+            "\n[[variants]]\nname = {}\nset = {{ embedding_dim = {}, pose_correction = {} }}\n",
+            quoted(model.name),
+            model.embedding_dim,
+            model.pose_correction
+        ));
+    }
+    let path = args.out.join("image-counts.toml");
+    // The description is checked before it is written: a bad value names its flag's field.
+    orbit_nerf_host::sweep::Sweep::parse(&path, &description)?;
+    orbit_nerf_host::io::check_output_folder(&args.out)?;
+    match std::fs::read_to_string(&path) {
+        Ok(earlier) if earlier != description => {
+            return Err(format!(
+                "{}: holds the description of another image-count study; give another --out",
+                path.display()
+            )
+            .into());
+        }
+        Ok(_) => {}
+        Err(_) => orbit_nerf_host::io::write_atomic(&path, description.as_bytes())?,
+    }
+    super::sweep::run_local(&path, &args.out, Some(1), Some(args.threads))
 }

@@ -6,9 +6,10 @@
 use super::{Fallible, choose_box};
 use orbit_nerf_host::ablation::{Experiment, Progress};
 use orbit_nerf_host::ablation_report::{load, simulated};
-use orbit_nerf_host::dataset::split_every;
+use orbit_nerf_host::dataset::{split_every, with_test_set};
 use orbit_nerf_host::error::HostError;
 use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
+use orbit_nerf_host::sim::scene::LabelNoise;
 use orbit_nerf_host::sweep::results::{
     self, CHECKPOINT, CurveRecord, LOG, PROGRESS, RENDER, TaskResult, TaskSettings, TaskTiming,
     array_spec, fnv1a, read_result, task_dir, unfinished, write_timing,
@@ -231,10 +232,10 @@ fn train_and_score(
     threads: usize,
     stop_after: Option<u32>,
 ) -> Fallible<(TaskResult, TaskTiming)> {
-    let (mut dataset, truth) = match &sweep.source {
+    let training = match &sweep.source {
         Source::Scene(scene) => simulated(
             scene,
-            sweep.frames,
+            task.frames,
             task.size,
             task.noise,
             &dir.join("data"),
@@ -242,7 +243,28 @@ fn train_and_score(
         )?,
         Source::Data(path) => load(path, task.size, sweep.masks)?,
     };
-    let (train_idx, test_idx) = split_every(dataset.frames.len(), sweep.holdout);
+    let (mut dataset, truth, train_idx, test_idx) = match &sweep.test {
+        // The same test set for every task (the scene's own seed), with exact labels.
+        Some(test) => {
+            let exact = LabelNoise {
+                rotation_deg: 0.0,
+                translation_m: 0.0,
+            };
+            let test_set = simulated(
+                &test.scene,
+                test.frames,
+                task.size,
+                Some(exact),
+                &dir.join("test-data"),
+                sweep.masks,
+            )?;
+            with_test_set(training, test_set)
+        }
+        None => {
+            let (train_idx, test_idx) = split_every(training.0.frames.len(), sweep.holdout);
+            (training.0, training.1, train_idx, test_idx)
+        }
+    };
     if train_idx.is_empty() || test_idx.is_empty() {
         return Err(format!(
             "{}: {} frames give no training or no held-out view with holdout {}",

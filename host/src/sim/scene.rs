@@ -10,13 +10,17 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// The presets shipped in `scenes/`, embedded so that they work from any folder.
-const PRESETS: [(&str, &str); 4] = [
+const PRESETS: [(&str, &str); 5] = [
     ("synthetic", include_str!("../../../scenes/synthetic.toml")),
     ("lightbox", include_str!("../../../scenes/lightbox.toml")),
     ("sunlamp", include_str!("../../../scenes/sunlamp.toml")),
     (
         "inspection",
         include_str!("../../../scenes/inspection.toml"),
+    ),
+    (
+        "lightbox-test",
+        include_str!("../../../scenes/lightbox-test.toml"),
     ),
 ];
 

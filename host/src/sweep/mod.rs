@@ -7,7 +7,11 @@
 //!
 //! ```toml
 //! scene = "synthetic"          # a preset or a scene file; or data = "path/to/speedplus"
-//! frames = 400                 # simulated scenes only
+//! frames = 400                 # simulated scenes only; a list is the image-count study:
+//!                              #   frames = [25, 50, 100, 200, 400], one task per count
+//! test_scene = "paper-test"    # optional: a separate test set (a preset or scene file),
+//! test_frames = 200            #   simulated with exact labels; every task is scored on all
+//!                              #   its views and trained on all of its own frames
 //! size = 128
 //! config = "spacecraft"        # a preset (default, spacecraft, tiny, standard, render), or a
 //!                              #   file of the fields to change (on top of `preset`)
@@ -54,8 +58,14 @@ pub struct SweepDescription {
     pub scene: Option<String>,
     /// A dataset folder of any format (instead of `scene`): SPEED+/SHIRT/simulator, NeRF-synthetic, nerfstudio.
     pub data: Option<PathBuf>,
-    /// Frames to simulate (default 400).
-    pub frames: Option<u32>,
+    /// Frames to simulate (default 400); a list gives one task per count (the image-count
+    /// study).
+    pub frames: Option<FrameCounts>,
+    /// A separate test set: a scene preset or scene file simulated with exact labels
+    /// (instead of holding out every `holdout`-th view).
+    pub test_scene: Option<String>,
+    /// Frames of the test set (default: the test scene's own).
+    pub test_frames: Option<u32>,
     /// Image size in pixels (default 128).
     pub size: Option<u32>,
     /// The built-in preset the base config starts from (see [`crate::presets`]; default
@@ -80,6 +90,22 @@ pub struct SweepDescription {
     #[serde(default)]
     pub variants: Vec<VariantSpec>,
     pub anytime: Option<AnytimeSpec>,
+}
+
+/// One frame count, or several (one task each).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(untagged)]
+pub enum FrameCounts {
+    One(u32),
+    Many(Vec<u32>),
+}
+
+/// A separate test set: a scene simulated with exact labels, every view scored.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TestScene {
+    /// A scene preset name or a scene file.
+    pub scene: String,
+    pub frames: u32,
 }
 
 /// Scoring during training, and the trade-off report's figures (see [`Anytime`]).
@@ -214,6 +240,8 @@ pub struct Task {
     pub seed: u64,
     /// Image size in pixels (the variant's, else the sweep's).
     pub size: u16,
+    /// Frames to simulate (a simulated scene; one of the sweep's counts).
+    pub frames: u32,
     pub config: Config,
 }
 
@@ -223,7 +251,10 @@ pub struct Sweep {
     /// The description file (or what stands for it), named in errors.
     pub origin: PathBuf,
     pub source: Source,
-    pub frames: u32,
+    /// The frame counts, ascending (one unless the description lists several).
+    pub frames: Vec<u32>,
+    /// The separate test set, when the description names one (`holdout` is then unused).
+    pub test: Option<TestScene>,
     pub size: u16,
     pub holdout: usize,
     pub fit_steps: u32,
@@ -350,13 +381,28 @@ impl SweepDescription {
                 "label noise needs a simulated `scene` (exact poses)".into(),
             ));
         }
-        let frames = self.frames.unwrap_or(400);
-        if !(2..=MAX_FRAMES).contains(&frames) {
-            return Err(field(
-                "frames",
-                format!("{frames} is not between 2 and {MAX_FRAMES}"),
-            ));
+        let frames = match &self.frames {
+            None => vec![400],
+            Some(FrameCounts::One(count)) => vec![*count],
+            Some(FrameCounts::Many(counts)) => counts.clone(),
+        };
+        if frames.is_empty() {
+            return Err(field("frames", "empty: give at least one count".into()));
         }
+        for (i, &count) in frames.iter().enumerate() {
+            if !(2..=MAX_FRAMES).contains(&count) {
+                return Err(field(
+                    "frames",
+                    format!("{count} is not between 2 and {MAX_FRAMES}"),
+                ));
+            }
+            if frames[..i].contains(&count) {
+                return Err(field("frames", format!("{count} is listed twice")));
+            }
+        }
+        let mut frames = frames;
+        frames.sort_unstable();
+        let test = self.test_set(origin, &relative, simulated)?;
         let size = self.size.unwrap_or(128);
         if !(8..=MAX_SIZE).contains(&size) {
             return Err(field(
@@ -364,8 +410,14 @@ impl SweepDescription {
                 format!("{size} is not between 8 and {MAX_SIZE} px"),
             ));
         }
+        if test.is_some() && self.holdout.is_some() {
+            return Err(field(
+                "holdout",
+                "a sweep with a `test_scene` is scored on it: every frame trains".into(),
+            ));
+        }
         let holdout = self.holdout.unwrap_or(8);
-        if holdout < 2 || (simulated && holdout > frames as usize) {
+        if holdout < 2 || (simulated && test.is_none() && holdout > frames[0] as usize) {
             return Err(field(
                 "holdout",
                 format!("{holdout}: every N-th view is held out, N from 2 to the frame count"),
@@ -465,7 +517,7 @@ impl SweepDescription {
         if levels.is_empty() {
             levels.push(None);
         }
-        let count = levels.len() * configs.len() * seeds.len();
+        let count = frames.len() * levels.len() * configs.len() * seeds.len();
         if count > MAX_TASKS {
             return Err(HostError::invalid(
                 origin,
@@ -473,30 +525,38 @@ impl SweepDescription {
             ));
         }
         let mut tasks = Vec::with_capacity(count);
-        for level in &levels {
-            for (variant, config, size) in &configs {
-                for &seed in &seeds {
-                    let mut config = *config;
-                    config.seed = seed;
-                    if let Some(noise) = level {
-                        noise.state_in(&mut config);
+        for &count in &frames {
+            for level in &levels {
+                for (variant, config, size) in &configs {
+                    for &seed in &seeds {
+                        let mut config = *config;
+                        config.seed = seed;
+                        if let Some(noise) = level {
+                            noise.state_in(&mut config);
+                        }
+                        let level_name = level.map_or(String::new(), |n| {
+                            format!(
+                                "noise {} deg / {} mm, ",
+                                n.rotation_deg,
+                                n.translation_m * 1000.0
+                            )
+                        });
+                        let count_name = if frames.len() > 1 {
+                            format!("{count} images, ")
+                        } else {
+                            String::new()
+                        };
+                        tasks.push(Task {
+                            index: tasks.len(),
+                            name: format!("{count_name}{level_name}{variant}, seed {seed}"),
+                            variant: variant.clone(),
+                            noise: *level,
+                            seed,
+                            size: *size,
+                            frames: count,
+                            config,
+                        });
                     }
-                    let level_name = level.map_or(String::new(), |n| {
-                        format!(
-                            "noise {} deg / {} mm, ",
-                            n.rotation_deg,
-                            n.translation_m * 1000.0
-                        )
-                    });
-                    tasks.push(Task {
-                        index: tasks.len(),
-                        name: format!("{level_name}{variant}, seed {seed}"),
-                        variant: variant.clone(),
-                        noise: *level,
-                        seed,
-                        size: *size,
-                        config,
-                    });
                 }
             }
         }
@@ -504,6 +564,7 @@ impl SweepDescription {
             origin: origin.to_path_buf(),
             source,
             frames,
+            test,
             size: size as u16,
             holdout,
             fit_steps,
@@ -520,6 +581,43 @@ impl SweepDescription {
 }
 
 impl SweepDescription {
+    /// The separate test set the description names (`test_scene`, `test_frames`), checked.
+    fn test_set(
+        &self,
+        origin: &Path,
+        relative: &dyn Fn(&Path) -> PathBuf,
+        simulated: bool,
+    ) -> Result<Option<TestScene>> {
+        let field = |name: &str, reason: String| HostError::field(origin, name, reason);
+        let Some(name) = &self.test_scene else {
+            if self.test_frames.is_some() {
+                return Err(field("test_frames", "needs a `test_scene`".into()));
+            }
+            return Ok(None);
+        };
+        if !simulated {
+            return Err(field(
+                "test_scene",
+                "a separate test set goes with a simulated `scene`".into(),
+            ));
+        }
+        let is_preset = crate::sim::scene::preset_names().any(|p| p == name);
+        let scene = if is_preset {
+            name.clone()
+        } else {
+            relative(Path::new(name)).display().to_string()
+        };
+        let spec = Scene::load(&scene).map_err(|e| field("test_scene", e.to_string()))?;
+        let frames = self.test_frames.unwrap_or(spec.spec.frames);
+        if !(1..=MAX_FRAMES).contains(&frames) {
+            return Err(field(
+                "test_frames",
+                format!("{frames} is not between 1 and {MAX_FRAMES}"),
+            ));
+        }
+        Ok(Some(TestScene { scene, frames }))
+    }
+
     /// The base config the description names: `preset` (default `spacecraft`) with the fields
     /// of the `config` file, or the preset `config` names; and the file when there is one.
     fn base_config(
@@ -772,6 +870,57 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
                 rotation_deg: 0.0,
                 translation_m: 0.016
             })
+        );
+    }
+
+    /// The image-count study: one task per count (ascending), model and seed; the tasks of a
+    /// model and seed differ only in their count; a separate test set replaces the hold-out.
+    #[test]
+    fn an_image_count_sweep_has_tasks_that_differ_only_in_the_count() {
+        let (_dir, sweep) = read(
+            "scene = \"synthetic\"\nframes = [100, 25, 50]\ntest_scene = \"lightbox-test\"\n\
+             test_frames = 20\nseeds = [1, 2]\n",
+        );
+        let sweep = sweep.unwrap();
+        assert_eq!(sweep.frames, [25, 50, 100]);
+        let test = sweep.test.as_ref().unwrap();
+        assert_eq!((test.scene.as_str(), test.frames), ("lightbox-test", 20));
+        assert_eq!(sweep.tasks.len(), 3 * 3 * 2);
+        assert_eq!(sweep.tasks[0].name, "25 images, baseline, seed 1");
+        let per_count = sweep.tasks.len() / 3;
+        for (i, task) in sweep.tasks.iter().enumerate() {
+            assert_eq!(task.frames, sweep.frames[i / per_count], "{}", task.name);
+            let first = &sweep.tasks[i % per_count];
+            let same = |t: &Task| (t.variant.clone(), t.seed, t.size, t.noise, t.config);
+            assert_eq!(same(task), same(first), "{} vs {}", task.name, first.name);
+        }
+        let refused = |text: &str, field: &str| {
+            let (_dir, sweep) = read(text);
+            let error = sweep.unwrap_err().to_string();
+            assert!(
+                error.contains(&format!("field `{field}`")),
+                "{text}: {error}"
+            );
+        };
+        refused("scene = \"synthetic\"\nframes = []\n", "frames");
+        refused("scene = \"synthetic\"\nframes = [8, 8]\n", "frames");
+        refused("scene = \"synthetic\"\nframes = [8, 1]\n", "frames");
+        refused("scene = \"synthetic\"\ntest_frames = 8\n", "test_frames");
+        refused(
+            "scene = \"synthetic\"\ntest_scene = \"lightbox-test\"\nholdout = 4\n",
+            "holdout",
+        );
+        refused(
+            "scene = \"synthetic\"\ntest_scene = \"lightbox-test\"\ntest_frames = 0\n",
+            "test_frames",
+        );
+        refused(
+            "scene = \"synthetic\"\ntest_scene = \"nowhere.toml\"\n",
+            "test_scene",
+        );
+        refused(
+            "data = \".\"\ntest_scene = \"lightbox-test\"\n",
+            "test_scene",
         );
     }
 

@@ -91,6 +91,9 @@ pub struct TaskSettings {
     pub source: String,
     /// Frames simulated (a simulated scene only).
     pub frames: Option<u32>,
+    /// The separate test set (`scene <name>, <n> frames`), when the task was scored on one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test: Option<String>,
     pub holdout: usize,
     pub fit_steps: u32,
     pub masks: bool,
@@ -115,13 +118,21 @@ impl TaskSettings {
                 } else {
                     name(Path::new(scene))
                 };
-                (format!("scene {scene}"), Some(sweep.frames))
+                (format!("scene {scene}"), Some(task.frames))
             }
             Source::Data(data) => (format!("data {}", name(data)), None),
         };
         TaskSettings {
             source,
             frames,
+            test: sweep.test.as_ref().map(|t| {
+                let scene = if crate::sim::scene::preset_names().any(|p| p == t.scene) {
+                    t.scene.clone()
+                } else {
+                    name(Path::new(&t.scene))
+                };
+                format!("scene {scene}, {} frames", t.frames)
+            }),
             holdout: sweep.holdout,
             fit_steps: sweep.fit_steps,
             masks: sweep.masks,
@@ -202,6 +213,8 @@ pub fn differences(
             frames(settings.frames),
             frames(asked.frames),
         );
+        let test = |t: &Option<String>| t.clone().unwrap_or_else(|| "none".into());
+        differ("settings.test", test(&settings.test), test(&asked.test));
         differ(
             "settings.holdout",
             settings.holdout.to_string(),
@@ -517,7 +530,7 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
     }
     write_atomic(&out.join("sweep.csv"), csv(&results).as_bytes())?;
     let mut text = format!(
-        "# Sweep `{}` on `{}`\n\n{}, every {}th view held out, {} steps per model, held-out embeddings fitted for {} steps; {} tasks. JNB: paper variant, lower is sharper. Pose errors: mean over the training frames, against the exact poses.\n\n",
+        "# Sweep `{}` on `{}`\n\n{}, {}, {} steps per model, held-out embeddings fitted for {} steps; {} tasks. JNB: paper variant, lower is sharper. Pose errors: mean over the training frames, against the exact poses.\n\n",
         sweep
             .origin
             .file_name()
@@ -532,10 +545,22 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
                 .into(),
         },
         match &sweep.source {
-            Source::Scene(_) => format!("{} frames of {} px", sweep.frames, sweep.size),
+            Source::Scene(_) => format!(
+                "{} frames of {} px",
+                (sweep.frames.iter().map(u32::to_string))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                sweep.size
+            ),
             Source::Data(_) => format!("{} px", sweep.size),
         },
-        sweep.holdout,
+        match &sweep.test {
+            Some(test) => format!(
+                "trained on every frame and scored on the {} views of the separate test set `{}` (exact poses)",
+                test.frames, test.scene
+            ),
+            None => format!("every {}th view held out", sweep.holdout),
+        },
         sweep.base.steps,
         sweep.fit_steps,
         results.len()
@@ -543,7 +568,11 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
     text.push_str(&table(
         &results,
         !sweep.rotation.is_empty() || !sweep.translation.is_empty(),
+        sweep.frames.len() > 1,
     ));
+    if sweep.frames.len() > 1 {
+        text.push_str(&image_count_section(sweep, &results, out)?);
+    }
     if write_renders(sweep, out)? {
         text.push_str("\n## First held-out view, every task\n\n![renders](renders.png)\n");
     }
@@ -592,9 +621,86 @@ fn pose_pair(
     }
 }
 
-/// The markdown table: a row per task.
-fn table(results: &[TaskResult], noise: bool) -> String {
+/// A metric of the image-count study: file stem, label, the stored mean, decimals.
+type StudyMetric = (
+    &'static str,
+    &'static str,
+    fn(&Metrics) -> Option<f64>,
+    usize,
+);
+
+/// The image-count study: per frame count and variant, the held-out PSNR, SSIM and JNB
+/// (means over the seeds) as a table laid out like the paper's, and their plots against the
+/// count (`image_counts_<metric>.png` in `out`).
+fn image_count_section(sweep: &Sweep, results: &[TaskResult], out: &Path) -> Result<String> {
+    let mut variants: Vec<&str> = Vec::new();
+    for task in &sweep.tasks {
+        if !variants.contains(&task.variant.as_str()) {
+            variants.push(&task.variant);
+        }
+    }
+    let mean = |count: u32, variant: &str, f: fn(&Metrics) -> Option<f64>| {
+        let values: Vec<f64> = (sweep.tasks.iter().zip(results))
+            .filter(|(t, _)| t.frames == count && t.variant == variant)
+            .map(|(_, r)| loaded(f(&r.metrics)))
+            .collect();
+        values.iter().sum::<f64>() / values.len().max(1) as f64
+    };
+    let metrics: [StudyMetric; 3] = [
+        ("psnr", "PSNR (dB)", |m| m.psnr_full, 2),
+        ("ssim", "SSIM", |m| m.ssim_full, 4),
+        ("jnb", "JNB (lower is sharper)", |m| m.jnb_full, 4),
+    ];
+    let mut header = vec!["training images".to_string()];
+    for variant in &variants {
+        header.extend(
+            metrics
+                .iter()
+                .map(|(_, label, _, _)| format!("{variant}: {label}")),
+        );
+    }
+    let rows: Vec<Vec<String>> = (sweep.frames.iter())
+        .map(|&count| {
+            let mut row = vec![count.to_string()];
+            for variant in &variants {
+                row.extend(
+                    (metrics.iter()).map(|&(_, _, f, d)| format_or_na(mean(count, variant, f), d)),
+                );
+            }
+            row
+        })
+        .collect();
+    let header: Vec<&str> = header.iter().map(String::as_str).collect();
+    let mut text = String::from("\n## Image-count study\n\n");
+    text.push_str(&markdown_table(&header, &rows));
+    for (name, label, f, _) in metrics {
+        let series: Vec<(&str, Vec<(f64, f64)>)> = (variants.iter())
+            .map(|&variant| {
+                let points = (sweep.frames.iter())
+                    .map(|&count| (count as f64, mean(count, variant, f)))
+                    .collect();
+                (variant, points)
+            })
+            .collect();
+        let file = format!("image_counts_{name}.png");
+        crate::report::line_plot(
+            &out.join(&file),
+            &format!("{label} against the training images"),
+            "training images",
+            label,
+            &series,
+        )?;
+        text.push_str(&format!("\n![{label}]({file})\n"));
+    }
+    Ok(text)
+}
+
+/// The markdown table: a row per task (with its frame count when the sweep has several).
+fn table(results: &[TaskResult], noise: bool, counts: bool) -> String {
     let mut header = vec!["task", "variant", "seed"];
+    if counts {
+        header.push("frames");
+    }
     if noise {
         header.extend(["rot. noise deg", "pos. noise mm"]);
     }
@@ -615,6 +721,10 @@ fn table(results: &[TaskResult], noise: bool) -> String {
         .iter()
         .map(|r| {
             let mut row = vec![r.index.to_string(), r.variant.clone(), r.seed.to_string()];
+            if counts {
+                let frames = r.settings.as_ref().and_then(|s| s.frames);
+                row.push(frames.map_or("n/a".into(), |f| f.to_string()));
+            }
             if noise {
                 row.push(r.rotation_noise_deg.to_string());
                 row.push(r.translation_noise_mm.to_string());
