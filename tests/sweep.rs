@@ -489,3 +489,71 @@ fn an_image_count_study_trains_each_count_and_scores_one_separate_test_set() {
     assert!(output_text(&other).contains("another image-count study"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `tradeoff --test-data` (issue 41): every variant trains on all of the data's frames and is
+/// scored on every view of the separate test set, which the description and each record name;
+/// with `--holdout` it is a usage error.
+#[test]
+fn a_tradeoff_on_a_separate_test_set_scores_every_test_view() {
+    let dir = temp_dir("tradeoff-test-data");
+    let (train, test, out) = (dir.join("train"), dir.join("test"), dir.join("out"));
+    for (folder, scene, frames) in [(&train, "synthetic", "6"), (&test, "lightbox-test", "5")] {
+        let (ok, text) = common::run_orbit_nerf(&[
+            "simulate",
+            "--scene",
+            scene,
+            "--frames",
+            frames,
+            "--size",
+            "32",
+            "--out",
+            folder.to_str().unwrap(),
+        ]);
+        assert!(ok, "{text}");
+    }
+    let tradeoff = |extra: &[&str]| {
+        let flags = [
+            "tradeoff",
+            "--data",
+            train.to_str().unwrap(),
+            "--test-data",
+            test.to_str().unwrap(),
+            "--size",
+            "32",
+            "--preset",
+            "tiny",
+            "--steps",
+            "4",
+            "--vary",
+            "features=16",
+            "--fit-steps",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        orbit_nerf(&[&flags[..], extra].concat()).output().unwrap()
+    };
+    let conflict = tradeoff(&["--holdout", "4"]);
+    assert_eq!(
+        conflict.status.code(),
+        Some(2),
+        "{}",
+        output_text(&conflict)
+    );
+    assert!(!out.exists());
+    let run = tradeoff(&[]);
+    assert!(run.status.success(), "{}", output_text(&run));
+    let description = std::fs::read_to_string(out.join("tradeoff.toml")).unwrap();
+    assert!(description.contains("test_data = "), "{description}");
+    assert!(!description.contains("holdout"), "{description}");
+    for index in 0..2 {
+        let record: serde_json::Value =
+            serde_json::from_slice(&bytes(&out.join(format!("tasks/{index}/result.json"))))
+                .unwrap();
+        assert_eq!(record["held_out_views"], 5, "task {index}");
+        assert_eq!(record["settings"]["test"], "data test", "task {index}");
+    }
+    let report = std::fs::read_to_string(out.join("sweep.md")).unwrap();
+    assert!(report.contains("separate test set `test`"), "{report}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,6 +1,8 @@
 //! `orbit-nerf ablate`: the paper's ablation (baseline, + appearance, + appearance and pose
-//! correction on one scene) and its pose-noise sweep on the `synthetic` preset.
+//! correction on one scene), its pose-noise sweep on the `synthetic` preset and its
+//! image-count study (run as a sweep).
 
+use super::tradeoff::scene_reference;
 use super::{
     FIT_STEPS, Fallible, SceneBox, choose_box, machine_threads, parse_scene_box, parse_threads,
     preset_config, preset_parser,
@@ -356,53 +358,61 @@ fn sweep(args: &AblateArgs) -> Fallible<()> {
 /// The image-count study as a sweep description in `--out` (`image-counts.toml`), run here
 /// by the sweep runner: one task per count and model, every task scored on the same test set.
 fn image_counts(args: &AblateArgs) -> Fallible<()> {
-    let absolute =
-        |path: &Path| -> Fallible<String> { Ok(std::path::absolute(path)?.display().to_string()) };
-    // A scene file is named by its absolute path: the description lives in --out.
-    let scene = |name: &str| -> Fallible<String> {
-        if orbit_nerf_host::sim::scene::preset_names().any(|p| p == name) {
-            Ok(name.to_string())
-        } else {
-            absolute(Path::new(name))
-        }
-    };
-    let quoted = |text: &str| toml::Value::String(text.to_string()).to_string();
-    let counts: Vec<String> = args.image_counts.iter().map(usize::to_string).collect();
-    let mut description = format!(
-        "# ablate --image-counts: baseline and ours + pose per training-image count, scored on\n# the separate test set `{}`.\nscene = {}\nframes = [{}]\ntest_scene = {}\nsize = {}\nfit_steps = {}\nmasks = {}\n",
-        args.test_scene,
-        quoted(&scene(&args.scene)?),
-        counts.join(", "),
-        quoted(&scene(&args.test_scene)?),
-        args.size,
-        args.fit_steps,
-        !args.no_masks
+    let mut table = toml::Table::new();
+    table.insert("scene".into(), scene_reference(&args.scene)?.into());
+    let counts: Vec<i64> = args.image_counts.iter().map(|&n| n as i64).collect();
+    table.insert("frames".into(), counts.into());
+    table.insert(
+        "test_scene".into(),
+        scene_reference(&args.test_scene)?.into(),
     );
     if let Some(frames) = args.test_frames {
-        description.push_str(&format!("test_frames = {frames}\n"));
+        table.insert("test_frames".into(), (frames as i64).into());
     }
+    table.insert("size".into(), (args.size as i64).into());
+    table.insert("fit_steps".into(), (args.fit_steps as i64).into());
+    table.insert("masks".into(), (!args.no_masks).into());
     if let Some(preset) = &args.preset {
-        description.push_str(&format!("preset = {}\n", quoted(preset)));
+        table.insert("preset".into(), preset.clone().into());
     }
     if let Some(config) = &args.config {
-        description.push_str(&format!("config = {}\n", quoted(&absolute(config)?)));
+        let config =
+            std::fs::canonicalize(config).map_err(|e| format!("{}: {e}", config.display()))?;
+        table.insert("config".into(), config.display().to_string().into());
     }
     if let Some(steps) = args.steps {
-        description.push_str(&format!("steps = {steps}\n"));
+        table.insert("steps".into(), (steps as i64).into());
     }
     if let Some(([x0, y0, z0], [x1, y1, z1])) = args.scene_box {
-        description.push_str(&format!("scene_box = \"{x0},{y0},{z0},{x1},{y1},{z1}\"\n"));
+        table.insert(
+            "scene_box".into(),
+            format!("{x0},{y0},{z0},{x1},{y1},{z1}").into(),
+        );
     }
-    for model in [BASELINE, APPEARANCE_POSE] {
-        description.push_str(&format!(
-            "\n[[variants]]\nname = {}\nset = {{ embedding_dim = {}, pose_correction = {} }}\n",
-            quoted(model.name),
-            model.embedding_dim,
-            model.pose_correction
-        ));
-    }
+    let variants: Vec<toml::Value> = [BASELINE, APPEARANCE_POSE]
+        .iter()
+        .map(|model| {
+            let set = toml::Table::from_iter([
+                (
+                    "embedding_dim".to_string(),
+                    i64::from(model.embedding_dim).into(),
+                ),
+                ("pose_correction".to_string(), model.pose_correction.into()),
+            ]);
+            toml::Table::from_iter([
+                ("name".to_string(), model.name.into()),
+                ("set".to_string(), set.into()),
+            ])
+            .into()
+        })
+        .collect();
+    table.insert("variants".into(), variants.into());
+    let description = format!(
+        "# Written by `orbit-nerf ablate --image-counts`: baseline and ours + pose per training-image count.\n{}",
+        toml::to_string(&table).map_err(|e| format!("writing the description: {e}"))?
+    );
     let path = args.out.join("image-counts.toml");
-    // The description is checked before it is written: a bad value names its flag's field.
+    // The description is checked before it is written: a bad value names its field.
     orbit_nerf_host::sweep::Sweep::parse(&path, &description)?;
     orbit_nerf_host::io::check_output_folder(&args.out)?;
     match std::fs::read_to_string(&path) {

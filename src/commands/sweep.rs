@@ -15,7 +15,7 @@ use orbit_nerf_host::sweep::results::{
     array_spec, fnv1a, read_result, task_dir, unfinished, write_timing,
 };
 use orbit_nerf_host::sweep::slurm::{self, Resources};
-use orbit_nerf_host::sweep::{Source, Sweep, Task};
+use orbit_nerf_host::sweep::{Source, Sweep, Task, TestSet};
 use orbit_nerf_host::train::to_rgb8;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -245,14 +245,14 @@ fn train_and_score(
     };
     let (mut dataset, truth, train_idx, test_idx) = match &sweep.test {
         // The same test set for every task (the scene's own seed), with exact labels.
-        Some(test) => {
+        Some(TestSet::Scene { scene, frames }) => {
             let exact = LabelNoise {
                 rotation_deg: 0.0,
                 translation_m: 0.0,
             };
             let test_set = simulated(
-                &test.scene,
-                test.frames,
+                scene,
+                *frames,
                 task.size,
                 Some(exact),
                 &dir.join("test-data"),
@@ -260,6 +260,7 @@ fn train_and_score(
             )?;
             with_test_set(training, test_set)
         }
+        Some(TestSet::Data(data)) => with_test_set(training, load(data, task.size, sweep.masks)?),
         None => {
             let (train_idx, test_idx) = split_every(training.0.frames.len(), sweep.holdout);
             (training.0, training.1, train_idx, test_idx)

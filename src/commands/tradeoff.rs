@@ -62,6 +62,11 @@ pub struct TradeoffArgs {
     /// Every N-th view is held out.
     #[arg(long, default_value_t = 8)]
     holdout: usize,
+    /// Score on this separate test set (a dataset folder of any format; every view scored at
+    /// its exact pose where it has one) and train on every frame, as the paper's protocol is;
+    /// --holdout is then not used.
+    #[arg(long, conflicts_with = "holdout")]
+    test_data: Option<PathBuf>,
     /// Steps fitting each held-out view's embedding on its left half.
     #[arg(long, default_value_t = FIT_STEPS)]
     fit_steps: u32,
@@ -173,7 +178,10 @@ fn description(args: &TradeoffArgs) -> Fallible<String> {
         base.warmup_steps = base.warmup_steps.min(steps);
     }
     table.insert("steps".into(), (base.steps as i64).into());
-    table.insert("holdout".into(), (args.holdout as i64).into());
+    match &args.test_data {
+        Some(test) => table.insert("test_data".into(), absolute(test)?.into()),
+        None => table.insert("holdout".into(), (args.holdout as i64).into()),
+    };
     table.insert("fit_steps".into(), (args.fit_steps as i64).into());
     table.insert("masks".into(), (!args.no_masks).into());
 
@@ -264,7 +272,7 @@ fn variant(name: &str, set: &toml::Table, size: Option<u32>) -> toml::Table {
 }
 
 /// A scene preset's name as it is, a scene file's path made absolute.
-fn scene_reference(scene: &str) -> Fallible<String> {
+pub(super) fn scene_reference(scene: &str) -> Fallible<String> {
     if orbit_nerf_host::sim::scene::preset_names().any(|p| p == scene) {
         return Ok(scene.to_string());
     }

@@ -12,6 +12,7 @@
 //! test_scene = "paper-test"    # optional: a separate test set (a preset or scene file),
 //! test_frames = 200            #   simulated with exact labels; every task is scored on all
 //!                              #   its views and trained on all of its own frames
+//! test_data = "path/to/test"   # or a separate test set read from a dataset folder
 //! size = 128
 //! config = "spacecraft"        # a preset (default, spacecraft, tiny, standard, render), or a
 //!                              #   file of the fields to change (on top of `preset`)
@@ -66,6 +67,9 @@ pub struct SweepDescription {
     pub test_scene: Option<String>,
     /// Frames of the test set (default: the test scene's own).
     pub test_frames: Option<u32>,
+    /// A separate test set read from a dataset folder of any format (instead of
+    /// `test_scene`).
+    pub test_data: Option<PathBuf>,
     /// Image size in pixels (default 128).
     pub size: Option<u32>,
     /// The built-in preset the base config starts from (see [`crate::presets`]; default
@@ -100,12 +104,13 @@ pub enum FrameCounts {
     Many(Vec<u32>),
 }
 
-/// A separate test set: a scene simulated with exact labels, every view scored.
+/// A separate test set, every view scored and none trained on.
 #[derive(Clone, Debug, PartialEq)]
-pub struct TestScene {
-    /// A scene preset name or a scene file.
-    pub scene: String,
-    pub frames: u32,
+pub enum TestSet {
+    /// A scene preset name or a scene file, simulated with exact labels.
+    Scene { scene: String, frames: u32 },
+    /// A dataset folder of any format (scored at its exact poses where it has them).
+    Data(PathBuf),
 }
 
 /// Scoring during training, and the trade-off report's figures (see [`Anytime`]).
@@ -254,7 +259,7 @@ pub struct Sweep {
     /// The frame counts, ascending (one unless the description lists several).
     pub frames: Vec<u32>,
     /// The separate test set, when the description names one (`holdout` is then unused).
-    pub test: Option<TestScene>,
+    pub test: Option<TestSet>,
     pub size: u16,
     pub holdout: usize,
     pub fit_steps: u32,
@@ -587,14 +592,32 @@ impl SweepDescription {
         origin: &Path,
         relative: &dyn Fn(&Path) -> PathBuf,
         simulated: bool,
-    ) -> Result<Option<TestScene>> {
+    ) -> Result<Option<TestSet>> {
         let field = |name: &str, reason: String| HostError::field(origin, name, reason);
         let Some(name) = &self.test_scene else {
             if self.test_frames.is_some() {
                 return Err(field("test_frames", "needs a `test_scene`".into()));
             }
-            return Ok(None);
+            return match &self.test_data {
+                Some(data) => {
+                    let data = relative(data);
+                    if !data.is_dir() {
+                        return Err(field(
+                            "test_data",
+                            format!("{} is not a folder", data.display()),
+                        ));
+                    }
+                    Ok(Some(TestSet::Data(data)))
+                }
+                None => Ok(None),
+            };
         };
+        if self.test_data.is_some() {
+            return Err(field(
+                "test_data",
+                "give `test_scene` or `test_data`, not both".into(),
+            ));
+        }
         if !simulated {
             return Err(field(
                 "test_scene",
@@ -615,7 +638,7 @@ impl SweepDescription {
                 format!("{frames} is not between 1 and {MAX_FRAMES}"),
             ));
         }
-        Ok(Some(TestScene { scene, frames }))
+        Ok(Some(TestSet::Scene { scene, frames }))
     }
 
     /// The base config the description names: `preset` (default `spacecraft`) with the fields
@@ -883,8 +906,13 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
         );
         let sweep = sweep.unwrap();
         assert_eq!(sweep.frames, [25, 50, 100]);
-        let test = sweep.test.as_ref().unwrap();
-        assert_eq!((test.scene.as_str(), test.frames), ("lightbox-test", 20));
+        assert_eq!(
+            sweep.test,
+            Some(TestSet::Scene {
+                scene: "lightbox-test".into(),
+                frames: 20
+            })
+        );
         assert_eq!(sweep.tasks.len(), 3 * 3 * 2);
         assert_eq!(sweep.tasks[0].name, "25 images, baseline, seed 1");
         let per_count = sweep.tasks.len() / 3;
@@ -921,6 +949,20 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
         refused(
             "data = \".\"\ntest_scene = \"lightbox-test\"\n",
             "test_scene",
+        );
+        refused(
+            "scene = \"synthetic\"\ntest_data = \"nowhere\"\n",
+            "test_data",
+        );
+        refused(
+            "scene = \"synthetic\"\ntest_scene = \"lightbox-test\"\ntest_data = \".\"\n",
+            "test_data",
+        );
+        // A folder of any format is a test set of its own, beside a scene or data.
+        let (dir, sweep) = read("data = \".\"\ntest_data = \".\"\n");
+        assert_eq!(
+            sweep.unwrap().test,
+            Some(TestSet::Data(dir.path().join(".")))
         );
     }
 

@@ -7,7 +7,7 @@
 //! keeps the task's settings ([`TaskSettings`]): a record made with settings other than the
 //! description asks of its task is refused wherever records are read ([`read_result`]).
 
-use super::{Source, Sweep, Task};
+use super::{Source, Sweep, Task, TestSet};
 use crate::error::{HostError, Result};
 use crate::io::{write_atomic, write_png};
 use crate::report::{
@@ -125,13 +125,16 @@ impl TaskSettings {
         TaskSettings {
             source,
             frames,
-            test: sweep.test.as_ref().map(|t| {
-                let scene = if crate::sim::scene::preset_names().any(|p| p == t.scene) {
-                    t.scene.clone()
-                } else {
-                    name(Path::new(&t.scene))
-                };
-                format!("scene {scene}, {} frames", t.frames)
+            test: sweep.test.as_ref().map(|test| match test {
+                TestSet::Scene { scene, frames } => {
+                    let scene = if crate::sim::scene::preset_names().any(|p| p == scene) {
+                        scene.clone()
+                    } else {
+                        name(Path::new(scene))
+                    };
+                    format!("scene {scene}, {frames} frames")
+                }
+                TestSet::Data(data) => format!("data {}", name(data)),
             }),
             holdout: sweep.holdout,
             fit_steps: sweep.fit_steps,
@@ -555,9 +558,12 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
             Source::Data(_) => format!("{} px", sweep.size),
         },
         match &sweep.test {
-            Some(test) => format!(
-                "trained on every frame and scored on the {} views of the separate test set `{}` (exact poses)",
-                test.frames, test.scene
+            Some(TestSet::Scene { scene, frames }) => format!(
+                "trained on every frame and scored on the {frames} views of the separate test set `{scene}` (exact poses)"
+            ),
+            Some(TestSet::Data(data)) => format!(
+                "trained on every frame and scored on every view of the separate test set `{}`",
+                data.file_name().unwrap_or_default().to_string_lossy()
             ),
             None => format!("every {}th view held out", sweep.holdout),
         },
