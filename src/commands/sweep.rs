@@ -12,7 +12,7 @@ use orbit_nerf_host::io::{check_output_folder, write_atomic, write_png};
 use orbit_nerf_host::sim::scene::LabelNoise;
 use orbit_nerf_host::sweep::results::{
     self, CHECKPOINT, CurveRecord, LOG, PROGRESS, RENDER, TaskResult, TaskSettings, TaskTiming,
-    array_spec, fnv1a, read_result, task_dir, unfinished, write_timing,
+    array_spec, fnv1a_file, read_result, task_dir, unfinished, write_timing,
 };
 use orbit_nerf_host::sweep::slurm::{self, Resources};
 use orbit_nerf_host::sweep::{Source, Sweep, Task, TestSet};
@@ -315,7 +315,6 @@ fn train_and_score(
         3,
         &to_rgb8(&result.renders[0]),
     )?;
-    let bytes = std::fs::read(&checkpoint).map_err(|e| format!("{}: {e}", checkpoint.display()))?;
     println!(
         "  trained in {:.1} s; held-out PSNR {:.2} dB, SSIM {:.4}",
         result.train_seconds, result.metrics.psnr_full, result.metrics.ssim_full
@@ -347,7 +346,7 @@ fn train_and_score(
         metrics_exact: result.metrics_exact.map(Into::into),
         metrics_aligned: Some(result.metrics_aligned.into()),
         pose_uncertainty: result.pose_uncertainty,
-        checkpoint_fnv1a: format!("{:016x}", fnv1a(&bytes)),
+        checkpoint_fnv1a: format!("{:016x}", fnv1a_file(&checkpoint)?),
         settings: Some(TaskSettings::of(sweep, task)),
     };
     let timing = TaskTiming {

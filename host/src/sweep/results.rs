@@ -398,9 +398,31 @@ impl From<Poses> for PoseErrors {
 
 /// FNV-1a, 64 bit: the checkpoint fingerprint of the records.
 pub fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |hash, &b| {
+    fnv1a_on(FNV1A_OFFSET, bytes)
+}
+
+const FNV1A_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+
+/// FNV-1a continued from `hash` over `bytes`.
+fn fnv1a_on(hash: u64, bytes: &[u8]) -> u64 {
+    bytes.iter().fold(hash, |hash, &b| {
         (hash ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
     })
+}
+
+/// [`fnv1a`] of the file at `path`, read a buffer at a time (no copy of a model in memory).
+pub fn fnv1a_file(path: &Path) -> Result<u64> {
+    use std::io::Read;
+    let mut file = std::fs::File::open(path).map_err(|e| HostError::io(path, e))?;
+    let mut buffer = vec![0u8; 1 << 20];
+    let mut hash = FNV1A_OFFSET;
+    loop {
+        let n = file.read(&mut buffer).map_err(|e| HostError::io(path, e))?;
+        if n == 0 {
+            return Ok(hash);
+        }
+        hash = fnv1a_on(hash, &buffer[..n]);
+    }
 }
 
 pub fn write_result(out: &Path, result: &TaskResult) -> Result<()> {
@@ -1134,5 +1156,10 @@ mod tests {
         // Reference values of FNV-1a 64.
         assert_eq!(fnv1a(b""), 0xcbf2_9ce4_8422_2325);
         assert_eq!(fnv1a(b"a"), 0xaf63_dc4c_8601_ec8c);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("large");
+        let bytes: Vec<u8> = (0..3_000_000u32).map(|i| (i * 7 % 251) as u8).collect();
+        std::fs::write(&path, &bytes).unwrap();
+        assert_eq!(fnv1a_file(&path).unwrap(), fnv1a(&bytes));
     }
 }
