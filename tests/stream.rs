@@ -707,3 +707,45 @@ fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit(
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Anytime points before the first held-out view has arrived say so instead of printing a
+/// score of nothing ("PSNR NaN dB on 0 views").
+#[test]
+fn anytime_points_before_any_held_out_view_print_no_score() {
+    let dir = temp_dir("no-view-yet");
+    let out = orbit_nerf(&[
+        "stream",
+        "--scene",
+        "synthetic",
+        "--frames",
+        "6",
+        "--size",
+        "32",
+        "--holdout",
+        "4",
+        "--eval-every",
+        "1",
+        "--store",
+        "4",
+        "--steps-per-frame",
+        "2",
+        "--fit-steps",
+        "1",
+        "--preset",
+        "tiny",
+        "--out",
+        dir.join("out").to_str().unwrap(),
+    ])
+    .output()
+    .unwrap();
+    let text = output_text(&out);
+    assert!(out.status.success(), "{text}");
+    let points: Vec<&str> = text.lines().filter(|l| l.contains(" steps: ")).collect();
+    assert_eq!(points.len(), 6, "{text}");
+    for line in &points[..3] {
+        assert!(line.contains("no held-out view yet"), "{line}");
+    }
+    assert!(points[3].contains("PSNR") && points[3].contains("on the 1 held-out views"));
+    assert!(!text.contains("NaN"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

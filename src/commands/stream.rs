@@ -312,15 +312,21 @@ fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> 
                 bar.inc(1);
             }
             Event::Anytime(point) => {
-                last_quality = format!("held-out so far {:.2} dB", point.psnr);
+                // Before the first held-out view arrives there is nothing to score.
+                let quality = if point.held_out_views == 0 {
+                    "no held-out view yet".to_string()
+                } else {
+                    last_quality = format!("held-out so far {:.2} dB", point.psnr);
+                    format!(
+                        "PSNR {:.2} dB, SSIM {:.4} on the {} held-out views seen so far",
+                        point.psnr, point.ssim, point.held_out_views
+                    )
+                };
                 bar.suspend(|| println!(
-                    "{:>4} frames seen, {:>3} held, {:>5} steps: PSNR {:.2} dB, SSIM {:.4} on the {} held-out views seen so far, {:.2} s/frame, RSS {:.1} MiB",
+                    "{:>4} frames seen, {:>3} held, {:>5} steps: {quality}, {:.2} s/frame, RSS {:.1} MiB",
                     point.frames_seen,
                     point.frames_held,
                     point.steps,
-                    point.psnr,
-                    point.ssim,
-                    point.held_out_views,
                     point.seconds_per_frame,
                     point.rss_mib
                 ));
