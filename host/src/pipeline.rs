@@ -407,19 +407,20 @@ pub fn stated_box(
     })
 }
 
-/// A trainer over a fresh arena, with `frames` loaded into slots 0, 1, ...; the arena and
-/// the `resident` parts the caller holds beside it (its data, its outputs) are checked
-/// against `memory_limit` (or a share of the machine's memory) before the arena is allocated.
+/// A trainer over a fresh arena of `config`, with `frames` loaded into slots 0, 1, ...; the
+/// arena and the `resident` parts the caller holds beside it (its data, its outputs) are
+/// checked against `memory_limit` (or a share of the machine's memory) before the arena is
+/// allocated, an error naming `what`.
 pub fn with_trainer<R, E: From<HostError>>(
-    config: Config,
-    memory_limit: Option<u64>,
+    what: &Path,
+    (config, memory_limit): (Config, Option<u64>),
     resident: &[Part],
     frames: &[&Frame],
     f: impl FnOnce(&mut Trainer<'_>) -> std::result::Result<R, E>,
 ) -> std::result::Result<R, E> {
     let plan = MemoryPlan::new(&config);
     memory::check_plan(
-        Path::new("the model"),
+        what,
         &memory::with_arena(resident, &plan),
         memory::limit_or_default(memory_limit),
     )?;
@@ -446,9 +447,7 @@ pub fn with_checkpoint<R, E: From<HostError>>(
     f: impl FnOnce(&mut Trainer<'_>) -> std::result::Result<R, E>,
 ) -> std::result::Result<R, E> {
     let config = checkpoint_config(path)?;
-    let model = memory::with_arena(resident, &MemoryPlan::new(&config));
-    memory::check_plan(path, &model, memory::limit_or_default(memory_limit))?;
-    with_trainer(config, memory_limit, resident, &[], |trainer| {
+    with_trainer(path, (config, memory_limit), resident, &[], |trainer| {
         train::restore_checkpoint(path, trainer, &[])?;
         f(trainer)
     })
@@ -739,72 +738,79 @@ impl Pipeline {
         // A resumed run's frames come from its checkpoint (and are checked against the data).
         let fresh: &[&Frame] = if self.resumed { &[] } else { &frames };
         let resident = self.data.resident_parts();
-        with_trainer(config, self.memory_limit, &resident, fresh, |trainer| {
-            if self.resumed {
-                train::restore_checkpoint(&checkpoint_path, trainer, &[])?;
-                check_same_frames(&checkpoint_path, trainer, &frames)?;
-            }
-            let end = options
-                .stop_after
-                .map_or(config.steps, |stop| stop.min(config.steps));
-            let tally = train_steps(trainer, &executor, end, observer)?;
-            let finished = trainer.state().step >= config.steps;
-            // A finished run's last stage: the poses' refinement with the field frozen.
-            let pose_fits = if finished {
-                train::refine_poses(trainer, &executor)?
-            } else {
-                Vec::new()
-            };
-            let tally_for_check = train::TrainingTally {
-                steps: tally.steps,
-                samples: tally.samples,
-            };
-            train::check_trained(out, trainer, tally_for_check)?;
-            train::save_checkpoint(&checkpoint_path, trainer, &[])?;
-            record.write(out)?;
-            io::write_atomic(
-                &out.join("config.toml"),
-                train::config_to_toml(&config).as_bytes(),
-            )?;
-            if !finished {
-                return Ok(Outcome::Stopped {
-                    step: trainer.state().step,
-                });
-            }
-            let scores = train::evaluate_at(
-                trainer,
-                &executor,
-                &self.data.dataset,
-                &self.data.test,
-                self.data.truth.as_deref(),
-                (options.fit_steps, options.align_poses),
-                Some(&out.join("renders")),
-            )?;
-            let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
-            let mean = report::mean_metrics(&per_view);
-            let state = trainer.state();
-            let pose_refinement = pose_refinement(trainer, &frames, &pose_fits);
-            let model = ModelFigures {
-                name: "model".into(),
-                mean,
-                views: train::view_figures(&scores),
-                training: Some(TrainingFigures {
-                    steps: state.step as u64,
-                    steps_skipped: state.skipped as u64,
-                    seconds: tally.seconds,
-                    samples_per_ray: tally.samples_per_ray(),
-                }),
-                mean_at: None,
-                pose_refinement: pose_refinement.clone(),
-            };
-            Figures::new("train", vec![model]).write(out)?;
-            Ok(Outcome::Finished(Box::new(FinishedRun {
-                tally,
-                scores,
-                mean,
-                pose_refinement,
-            })))
-        })
+        let model = Path::new("the model");
+        with_trainer(
+            model,
+            (config, self.memory_limit),
+            &resident,
+            fresh,
+            |trainer| {
+                if self.resumed {
+                    train::restore_checkpoint(&checkpoint_path, trainer, &[])?;
+                    check_same_frames(&checkpoint_path, trainer, &frames)?;
+                }
+                let end = options
+                    .stop_after
+                    .map_or(config.steps, |stop| stop.min(config.steps));
+                let tally = train_steps(trainer, &executor, end, observer)?;
+                let finished = trainer.state().step >= config.steps;
+                // A finished run's last stage: the poses' refinement with the field frozen.
+                let pose_fits = if finished {
+                    train::refine_poses(trainer, &executor)?
+                } else {
+                    Vec::new()
+                };
+                let tally_for_check = train::TrainingTally {
+                    steps: tally.steps,
+                    samples: tally.samples,
+                };
+                train::check_trained(out, trainer, tally_for_check)?;
+                train::save_checkpoint(&checkpoint_path, trainer, &[])?;
+                record.write(out)?;
+                io::write_atomic(
+                    &out.join("config.toml"),
+                    train::config_to_toml(&config).as_bytes(),
+                )?;
+                if !finished {
+                    return Ok(Outcome::Stopped {
+                        step: trainer.state().step,
+                    });
+                }
+                let scores = train::evaluate_at(
+                    trainer,
+                    &executor,
+                    &self.data.dataset,
+                    &self.data.test,
+                    self.data.truth.as_deref(),
+                    (options.fit_steps, options.align_poses),
+                    Some(&out.join("renders")),
+                )?;
+                let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+                let mean = report::mean_metrics(&per_view);
+                let state = trainer.state();
+                let pose_refinement = pose_refinement(trainer, &frames, &pose_fits);
+                let model = ModelFigures {
+                    name: "model".into(),
+                    mean,
+                    views: train::view_figures(&scores),
+                    training: Some(TrainingFigures {
+                        steps: state.step as u64,
+                        steps_skipped: state.skipped as u64,
+                        seconds: tally.seconds,
+                        samples_per_ray: tally.samples_per_ray(),
+                    }),
+                    mean_at: None,
+                    pose_refinement: pose_refinement.clone(),
+                };
+                Figures::new("train", vec![model]).write(out)?;
+                Ok(Outcome::Finished(Box::new(FinishedRun {
+                    tally,
+                    scores,
+                    mean,
+                    pose_refinement,
+                })))
+            },
+        )
     }
 }
 

@@ -2,7 +2,7 @@
 //! correction on one scene), its pose-noise sweep on the `synthetic` preset and its
 //! image-count study (run as a sweep).
 
-use super::tradeoff::scene_reference;
+use super::tradeoff::{absolute, scene_reference};
 use super::{
     FIT_STEPS, Fallible, SceneBox, choose_box, machine_threads, parse_scene_box, parse_threads,
     preset_config, preset_parser,
@@ -376,9 +376,7 @@ fn image_counts(args: &AblateArgs) -> Fallible<()> {
         table.insert("preset".into(), preset.clone().into());
     }
     if let Some(config) = &args.config {
-        let config =
-            std::fs::canonicalize(config).map_err(|e| format!("{}: {e}", config.display()))?;
-        table.insert("config".into(), config.display().to_string().into());
+        table.insert("config".into(), absolute(config)?.into());
     }
     if let Some(steps) = args.steps {
         table.insert("steps".into(), (steps as i64).into());

@@ -8,7 +8,7 @@ use orbit_nerf_host::dataset::Dataset;
 use orbit_nerf_host::machine;
 use orbit_nerf_host::pipeline::{self, DataSettings, SplitData};
 use orbit_nerf_host::train::{self, RayonExecutor};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Args)]
@@ -112,32 +112,38 @@ pub fn run(args: &BenchArgs) -> CliResult {
     let mut report = String::new();
     for &threads in &args.threads {
         let executor = RayonExecutor::new(threads)?;
-        pipeline::with_trainer(config, None, &[], &frames, |trainer| -> Fallible<()> {
-            let warm = trainer.state().step + args.warmup;
-            pipeline::train_steps(trainer, &executor, warm, &mut ())?;
-            start_profile(trainer, args.profile);
-            let end = warm + args.timed_steps;
-            let t = pipeline::train_steps(trainer, &executor, end, &mut ())?;
-            println!(
-                "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
-                t.samples as f64 / t.seconds,
-                t.rays as f64 / t.seconds,
-                t.samples_per_ray(),
-                t.marched as f64 / t.rays.max(1) as f64,
-                1000.0 * t.seconds / args.timed_steps as f64
-            );
-            if args.profile {
-                let timed = Timed {
-                    threads,
-                    steps: args.timed_steps,
-                    steps_ns: (t.seconds * 1e9) as u64,
-                    dataset: &dataset,
-                    views: &test_idx,
-                };
-                report.push_str(&profile_report(trainer, &executor, &timed, args)?);
-            }
-            Ok(())
-        })?;
+        pipeline::with_trainer(
+            Path::new("the model"),
+            (config, None),
+            &[],
+            &frames,
+            |trainer| -> Fallible<()> {
+                let warm = trainer.state().step + args.warmup;
+                pipeline::train_steps(trainer, &executor, warm, &mut ())?;
+                start_profile(trainer, args.profile);
+                let end = warm + args.timed_steps;
+                let t = pipeline::train_steps(trainer, &executor, end, &mut ())?;
+                println!(
+                    "{threads:>7}  {:>12.0}  {:>10.0}  {:>11.2}  {:>14.2}  {:>9.1}",
+                    t.samples as f64 / t.seconds,
+                    t.rays as f64 / t.seconds,
+                    t.samples_per_ray(),
+                    t.marched as f64 / t.rays.max(1) as f64,
+                    1000.0 * t.seconds / args.timed_steps as f64
+                );
+                if args.profile {
+                    let timed = Timed {
+                        threads,
+                        steps: args.timed_steps,
+                        steps_ns: (t.seconds * 1e9) as u64,
+                        dataset: &dataset,
+                        views: &test_idx,
+                    };
+                    report.push_str(&profile_report(trainer, &executor, &timed, args)?);
+                }
+                Ok(())
+            },
+        )?;
     }
     println!("samples/s counts samples through forward + backward + update (after the early stop)");
     if let (Some(out), false) = (&args.out, report.is_empty()) {

@@ -138,12 +138,6 @@ pub fn run(args: &TradeoffArgs) -> Fallible<()> {
 
 /// The sweep description the flags give: paths absolute, so it runs from any folder.
 fn description(args: &TradeoffArgs) -> Fallible<String> {
-    let absolute = |p: &Path| -> Fallible<String> {
-        Ok(std::fs::canonicalize(p)
-            .map_err(|e| format!("{}: {e}", p.display()))?
-            .display()
-            .to_string())
-    };
     let mut table = toml::Table::new();
     let base = match &args.data {
         Some(data) => {
@@ -269,6 +263,14 @@ fn variant(name: &str, set: &toml::Table, size: Option<u32>) -> toml::Table {
         table.insert("size".into(), (size as i64).into());
     }
     table
+}
+
+/// `path` made absolute (links resolved), for a description run from any folder.
+pub(super) fn absolute(path: &Path) -> Fallible<String> {
+    Ok(std::fs::canonicalize(path)
+        .map_err(|e| format!("{}: {e}", path.display()))?
+        .display()
+        .to_string())
 }
 
 /// A scene preset's name as it is, a scene file's path made absolute.

@@ -110,16 +110,16 @@ impl TaskSettings {
             p.file_name()
                 .map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into())
         };
-        let (source, frames) = match &sweep.source {
-            Source::Scene(scene) => {
-                let preset = crate::sim::scene::preset_names().any(|p| p == scene);
-                let scene = if preset {
-                    scene.clone()
-                } else {
-                    name(Path::new(scene))
-                };
-                (format!("scene {scene}"), Some(task.frames))
+        // A preset by its name, a scene file by its file name.
+        let scene_name = |scene: &str| {
+            if crate::sim::scene::preset_names().any(|p| p == scene) {
+                scene.to_string()
+            } else {
+                name(Path::new(scene))
             }
+        };
+        let (source, frames) = match &sweep.source {
+            Source::Scene(scene) => (format!("scene {}", scene_name(scene)), Some(task.frames)),
             Source::Data(data) => (format!("data {}", name(data)), None),
         };
         TaskSettings {
@@ -127,12 +127,7 @@ impl TaskSettings {
             frames,
             test: sweep.test.as_ref().map(|test| match test {
                 TestSet::Scene { scene, frames } => {
-                    let scene = if crate::sim::scene::preset_names().any(|p| p == scene) {
-                        scene.clone()
-                    } else {
-                        name(Path::new(scene))
-                    };
-                    format!("scene {scene}, {frames} frames")
+                    format!("scene {}, {frames} frames", scene_name(scene))
                 }
                 TestSet::Data(data) => format!("data {}", name(data)),
             }),
