@@ -23,6 +23,11 @@ done
 echo "cross-build: orbit-nerf-core for thumbv7em-none-eabihf with defmt"
 cargo build -p orbit-nerf-core --release --target thumbv7em-none-eabihf --features defmt
 builds=$((builds + 1))
+# The library without its heavy optional parts (simulator, plots, Slurm): what an embedding
+# team builds.
+echo "build: orbit-nerf-host without default features"
+cargo build -p orbit-nerf-host --no-default-features
+builds=$((builds + 1))
 # The library's example: a small simulated set trained and scored through orbit_nerf_host alone.
 example_dir=$(mktemp -d)
 cargo run --release --example train_eval -- "$example_dir" | tail -n 1

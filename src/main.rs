@@ -115,7 +115,7 @@ mod tests {
             "docs/book/src/reference/commands.md is stale: regenerate it"
         );
         assert!(
-            read("config.md") == reference::config_chapter().unwrap(),
+            read("config.md") == orbit_nerf_host::reference::config_chapter().unwrap(),
             "docs/book/src/reference/config.md is stale: regenerate it"
         );
     }

@@ -334,7 +334,7 @@ fn every_loader_survives_mutated_inputs_without_panicking() {
 
     // Config TOML; a config that parses is also planned and, when small, built.
     let config_path = file("config.toml");
-    let config_seed = train::config_to_toml(&small).into_bytes();
+    let config_seed = train::config_to_toml(&small).unwrap().into_bytes();
     crashes.extend(fuzz("config", &[config_seed], &|bytes| {
         text(bytes).is_some_and(|text| {
             train::parse_config(&config_path, text, &Config::DEFAULT).is_ok_and(|config| {

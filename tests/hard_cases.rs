@@ -113,6 +113,13 @@ fn out_of_range_flag_values_are_refused_naming_the_flag() {
         ("eval", "--threads", "0"),
         ("eval", "--fit-steps", "nan"),
         ("eval", "--memory-limit", "-1G"),
+        ("stream", "--stop-after", "0"),
+        ("ablate", "--size", "21"),
+        ("ablate", "--frames", "1"),
+        ("demo", "--steps", "0"),
+        ("train", "--seed", "9223372036854775808"),
+        ("stream", "--seed", "-1"),
+        ("simulate", "--seed", "18446744073709551615"),
     ];
     for &(command, flag, value) in cases {
         let case = format!("{command} {flag} {value}");
@@ -370,7 +377,7 @@ fn simulate_with_a_camera_1e20_m_away_is_refused() {
 
 /// A rerun of `stream` without `--resume` does not replace the previous stream's checkpoint
 /// (unless `--force`), `--resume` from another source is refused, and an `--out` that is a
-/// file fails before any work.
+/// file, or `--stop-after 0`, fails before any work.
 #[test]
 fn stream_outputs_are_never_replaced_silently() {
     if common::shared_data().is_none() {
@@ -387,6 +394,10 @@ fn stream_outputs_are_never_replaced_silently() {
             .output()
             .unwrap()
     };
+    let zero = stream("lightbox", &out, &["--stop-after", "0"]);
+    assert_clear_error("stop after 0 steps", &zero, &["--stop-after"]);
+    assert!(!out.exists());
+    // Stopped once 2 steps are taken (one per frame: after the second frame).
     let stopped = stream("lightbox", &out, &["--stop-after", "2"]);
     assert!(stopped.status.success(), "{}", text(&stopped));
     let checkpoint = out.join("checkpoint.onrf");
@@ -524,7 +535,7 @@ fn small_config(scratch: &Scratch, name: &str, edit: impl FnOnce(&mut Config)) -
     config.rays_per_batch = 128;
     edit(&mut config);
     let path = scratch.path(name);
-    std::fs::write(&path, train::config_to_toml(&config)).unwrap();
+    std::fs::write(&path, train::config_to_toml(&config).unwrap()).unwrap();
     path
 }
 

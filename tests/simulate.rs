@@ -493,3 +493,41 @@ fn bad_scene_files_name_the_file_and_the_field() {
         );
     }
 }
+
+/// `--size` below the smallest image side is refused naming it, and nothing is written: by the
+/// command's parser, and by the library for every caller that sets a size after loading.
+#[test]
+fn a_size_below_the_minimum_is_refused_and_nothing_is_written() {
+    #[derive(clap::Parser)]
+    struct Command {
+        #[command(flatten)]
+        args: simulate_command::SimulateArgs,
+    }
+    let dir = TempDir::new("tiny-size");
+    for size in [0u16, 3, 7] {
+        let out = dir.0.join(format!("size-{size}"));
+        let parsed = Command::try_parse_from([
+            "orbit-nerf-simulate",
+            "--scene",
+            "lightbox",
+            "--size",
+            &size.to_string(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let message = parsed.err().expect("the parser must refuse it").to_string();
+        assert!(message.contains("--size"), "{message}");
+
+        for name in ["lightbox", "inspection"] {
+            let scene = preset(name, 2, size);
+            match sim::simulate(&scene, &out, &|| {}) {
+                Err(HostError::Field { field, reason, .. }) => {
+                    assert_eq!(field, "size", "{name} --size {size}: {reason}");
+                    assert!(reason.contains("--size"), "{reason}");
+                }
+                other => panic!("{name} --size {size}: expected a field error, got {other:?}"),
+            }
+            assert!(!out.exists(), "{name} --size {size}: output written");
+        }
+    }
+}

@@ -49,12 +49,13 @@ fn settings() -> StreamSettings {
 }
 
 /// Stream `source` into a fresh trainer (or the one saved at `checkpoint` when `resume`),
-/// stopping after `stop_after` arrivals; returns the outcome and the final state.
+/// stopping once the trainer has taken `stop_after` steps; returns the outcome and the final
+/// state.
 fn stream_api(
     source: &mut dyn FrameSource,
     store: u16,
     checkpoint: &Path,
-    stop_after: Option<u64>,
+    stop_after: Option<u32>,
     resume: bool,
     events: &mut dyn FnMut(&Event<'_>),
 ) -> (Outcome, StreamState) {
@@ -69,7 +70,7 @@ fn stream_api_stopped_by(
     source: &mut dyn FrameSource,
     store: u16,
     checkpoint: &Path,
-    (stop, stop_after): (&AtomicBool, Option<u64>),
+    (stop, stop_after): (&AtomicBool, Option<u32>),
     resume: bool,
     events: &mut dyn FnMut(&Event<'_>),
 ) -> (Outcome, StreamState) {
@@ -201,10 +202,14 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     );
     assert!(whole_state.curve.len() >= 6);
 
-    // Stopped after 13 arrivals (past two scorings and three checkpoints), then resumed.
+    // Stopped at step 38, within the 13th arrival's steps (3 per usable frame), past two
+    // scorings and three checkpoints; then resumed, first taking the frame's last step.
     let parts = dir.join("parts.onrf");
-    let (outcome, stopped) = stream_api(&mut open(), 6, &parts, Some(13), false, &mut |_| {});
-    assert_eq!((outcome, stopped.position), (Outcome::Stopped, 13));
+    let (outcome, stopped) = stream_api(&mut open(), 6, &parts, Some(38), false, &mut |_| {});
+    assert_eq!(
+        (outcome, stopped.position, saved_step(&parts)),
+        (Outcome::Stopped, 13, 38)
+    );
     let (outcome, resumed) = stream_api(&mut open(), 6, &parts, None, true, &mut |_| {});
     assert_eq!(outcome, Outcome::Finished);
     assert_eq!(
@@ -259,7 +264,7 @@ fn sigterm_or_sigkill_then_resume_matches_an_uninterrupted_run_of_the_binary() {
     }
     let dir = temp_dir("sigterm");
     let config = dir.join("model.toml");
-    std::fs::write(&config, train::config_to_toml(&base_config())).unwrap();
+    std::fs::write(&config, train::config_to_toml(&base_config()).unwrap()).unwrap();
     let run = |extra: &[&str], out: &Path| {
         let config = config.to_str().unwrap();
         let mut args = vec![

@@ -17,24 +17,30 @@ use std::time::Instant;
 /// Which of the method's additions a model uses.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Variant {
+    /// The model's name in tables and `metrics.json` (`""` for an unnamed run).
     pub name: &'static str,
+    /// Appearance embedding size per frame (0: no appearance embeddings).
     pub embedding_dim: u16,
+    /// Whether the model learns a pose correction per training frame.
     pub pose_correction: bool,
 }
 
 /// Appearance embedding size of the method's models.
 pub const EMBEDDING_DIM: u16 = 32;
 
+/// Plain K-Planes: no appearance embeddings, no pose correction.
 pub const BASELINE: Variant = Variant {
     name: "baseline",
     embedding_dim: 0,
     pose_correction: false,
 };
+/// The method with appearance embeddings ([`EMBEDDING_DIM`]) and no pose correction.
 pub const APPEARANCE: Variant = Variant {
     name: "ours",
     embedding_dim: EMBEDDING_DIM,
     pose_correction: false,
 };
+/// The full method: appearance embeddings ([`EMBEDDING_DIM`]) and pose correction.
 pub const APPEARANCE_POSE: Variant = Variant {
     name: "ours + pose",
     embedding_dim: EMBEDDING_DIM,
@@ -43,7 +49,10 @@ pub const APPEARANCE_POSE: Variant = Variant {
 
 /// What training and evaluating one model gave.
 pub struct VariantResult {
+    /// The model's variant (named `""` when it came from [`Experiment::run`]).
     pub variant: Variant,
+    /// Wall time of training, pose refinement included, seconds (anytime scoring and
+    /// progress saves left out; summed over resumed stretches).
     pub train_seconds: f64,
     /// Mean over the held-out views.
     pub metrics: ViewMetrics,
@@ -55,9 +64,11 @@ pub struct VariantResult {
     pub arena_bytes: usize,
     /// Renders of the held-out views (RGB f32), in `test` order.
     pub renders: Vec<Vec<f32>>,
-    /// Pose error of the training labels, and of the labels with the learned corrections,
-    /// against the exact poses (when the dataset has them).
+    /// Pose error of the training labels against the exact poses; `None` when the dataset
+    /// has none.
     pub pose_before: Option<PoseErrors>,
+    /// Pose error of the training labels with the learned corrections applied, against the
+    /// exact poses; `None` when the dataset has none.
     pub pose_after: Option<PoseErrors>,
     /// Each training frame's pose refinement (its uncertainty), in training order; empty
     /// without pose correction.
@@ -68,13 +79,15 @@ pub struct VariantResult {
     pub pose_uncertainty: Option<PoseUncertainty>,
     /// Seconds of the pose refinement (part of `train_seconds`).
     pub pose_refine_seconds: f64,
-    /// The held-out means with each view at its exact pose (where the data has them), and
-    /// at its label aligned by the pose refinement (test-time alignment); `metrics` is at
-    /// the labels.
+    /// The held-out means with each view at its exact pose; `None` when the data has no
+    /// exact poses (`metrics` is at the labels).
     pub metrics_exact: Option<ViewMetrics>,
+    /// The held-out means with each view at its label aligned by the pose refinement
+    /// (test-time alignment).
     pub metrics_aligned: ViewMetrics,
     /// Each held-out view's figures, in `test` order.
     pub views: Vec<ViewFigures>,
+    /// The training figures for `metrics.json`: steps, skipped steps, seconds, samples per ray.
     pub training: TrainingFigures,
     /// The field's surface (`geometry::extract_surface` with the default options and the
     /// mean training embedding), or why there is none.
@@ -104,10 +117,15 @@ impl VariantResult {
 /// A dataset with its held-out split, the exact poses when known, and how a model is
 /// evaluated on it: what every model of an experiment shares.
 pub struct Experiment<'a> {
+    /// The dataset every model trains and is scored on.
     pub dataset: &'a Dataset,
+    /// Every frame's exact pose, indexed like `dataset.frames`; `None` when unknown.
     pub truth: Option<&'a [Pose]>,
+    /// Indices into `dataset.frames` of the training views.
     pub train_idx: &'a [usize],
+    /// Indices into `dataset.frames` of the held-out (scored) views.
     pub test_idx: &'a [usize],
+    /// Worker threads.
     pub threads: usize,
     /// Steps fitting each held-out view's embedding on its left half.
     pub fit_steps: u32,
@@ -124,7 +142,9 @@ pub struct Experiment<'a> {
 /// that finds one continues from it.
 #[derive(Clone, Copy, Debug)]
 pub struct Progress<'a> {
+    /// The progress checkpoint file (a trainer checkpoint with the figures so far).
     pub path: &'a std::path::Path,
+    /// Save it every this many steps (0 is taken as 1).
     pub every: u32,
     /// Stop after this step (before the last), the state saved: [`HostError::Stopped`].
     pub stop_after: Option<u32>,
@@ -146,17 +166,25 @@ const FIGURES_SECTION: &str = "run_figures";
 /// training (scoring time left out).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CurvePoint {
+    /// Training steps taken.
     pub step: u32,
+    /// Training wall time to reach them, seconds (scoring and saves left out).
     pub seconds: f64,
+    /// The held-out views' mean metrics, at their labels.
     pub metrics: ViewMetrics,
 }
 
 /// A model's surface against the true shape: its size and the Chamfer distance, or why
 /// there is none.
 pub struct GeometryRow {
+    /// The model's variant name.
     pub name: String,
+    /// Vertices of its surface mesh (0 without a surface).
     pub vertices: usize,
+    /// Triangles of its surface mesh (0 without a surface).
     pub triangles: usize,
+    /// The Chamfer distance to the true surface, in the scene's units (metres for the
+    /// simulator's scenes), or why there is none.
     pub chamfer: std::result::Result<Chamfer, String>,
 }
 
@@ -235,7 +263,23 @@ impl Experiment<'_> {
             .iter()
             .map(|&i| dataset.frames[i].name.clone())
             .collect();
+        if let Some(truth) = self.truth.filter(|t| t.len() != dataset.frames.len()) {
+            return Err(HostError::invalid(
+                &dataset.source,
+                format!(
+                    "{} exact poses for {} frames: they cannot be paired",
+                    truth.len(),
+                    dataset.frames.len()
+                ),
+            ));
+        }
         let plan = MemoryPlan::new(&config);
+        // Checked against the default share of the machine's memory before it is allocated.
+        crate::memory::check_arena(
+            &dataset.source,
+            &plan,
+            crate::memory::limit_or_default(None),
+        )?;
         let mut arena = vec![0u8; plan.total];
         let mut trainer = Trainer::new(config, &mut arena)
             .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
@@ -337,12 +381,9 @@ impl Experiment<'_> {
                 correction.apply(label, config.pose_pivot_point())
             })
             .collect();
-        let exact: Option<Vec<Pose>> = self.truth.map(|truth| {
-            train_idx
-                .iter()
-                .filter_map(|&i| truth.get(i).copied())
-                .collect()
-        });
+        let exact: Option<Vec<Pose>> = self
+            .truth
+            .map(|truth| train_idx.iter().map(|&i| truth[i]).collect());
         let (pose_before, pose_after) = match &exact {
             Some(exact) => (
                 Some(report::pose_errors(&labels, exact)),

@@ -35,6 +35,7 @@ pub const FORMAT_VERSION: u32 = 5;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
+/// The contents of a checkpoint file: who wrote it, its configuration and its named state.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Checkpoint {
     /// What wrote the checkpoint (e.g. the trainer's name), so a reader can refuse a foreign one.
@@ -45,9 +46,12 @@ pub struct Checkpoint {
     pub sections: Vec<Section>,
 }
 
+/// One named blob of a [`Checkpoint`], opaque to this module.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Section {
+    /// The name the writer looks it up by, unique within the checkpoint.
     pub name: String,
+    /// The writer's encoding of the state.
     pub bytes: Vec<u8>,
 }
 
@@ -196,6 +200,23 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
 }
 
 /// [`load`] of a checkpoint file's bytes (`path` names it in errors).
+///
+/// ```
+/// use orbit_nerf_host::checkpoint::{FORMAT_VERSION, MAGIC, decode};
+/// use std::path::Path;
+///
+/// let path = Path::new("model.ckpt");
+/// let foreign = decode(path, b"PNG and other things").unwrap_err().to_string();
+/// assert!(foreign.contains("wrong magic bytes"), "{foreign}");
+///
+/// // The header of a checkpoint whose payload was cut off.
+/// let mut cut = MAGIC.to_vec();
+/// cut.extend(FORMAT_VERSION.to_le_bytes());
+/// cut.extend(100u64.to_le_bytes()); // payload length
+/// cut.extend(0u32.to_le_bytes()); // CRC-32
+/// let truncated = decode(path, &cut).unwrap_err().to_string();
+/// assert!(truncated.contains("truncated"), "{truncated}");
+/// ```
 pub fn decode(path: &Path, bytes: &[u8]) -> Result<Checkpoint> {
     let refuse = |reason: String| HostError::invalid(PathBuf::from(path), reason);
     // A file shorter than the magic that starts like one is a cut-off checkpoint, not a

@@ -5,10 +5,12 @@
 use orbit_nerf_core::{Camera, Pose};
 use std::path::PathBuf;
 
+/// One image of a dataset with its camera, pose label and optional mask.
 #[derive(Clone, Debug)]
 pub struct Frame {
     /// File the pixels came from (relative names are fine), for messages and reports.
     pub name: String,
+    /// Pinhole intrinsics of this image (pixels); width and height are the image's size.
     pub camera: Camera,
     /// The pose label the method trains on (camera-to-world, OpenCV axes).
     pub pose: Pose,
@@ -22,14 +24,17 @@ pub struct Frame {
     pub alpha_composited: bool,
 }
 
+/// A whole dataset as loaded: its frames, the box that holds the scene and the background.
 #[derive(Clone, Debug)]
 pub struct Dataset {
     /// Folder or file the dataset was read from.
     pub source: PathBuf,
+    /// The images in the loader's order; view indices (splits, truth, reports) index this.
     pub frames: Vec<Frame>,
-    /// Axis-aligned box (world units) that holds the whole scene (empty while
-    /// `scene_box` is [`SceneBoxOrigin::Unknown`]).
+    /// Lower corner of the axis-aligned box (world units) that holds the whole scene (zero,
+    /// an empty box, while `scene_box` is [`SceneBoxOrigin::Unknown`]).
     pub scene_min: [f32; 3],
+    /// Upper corner of the scene box (world units); see `scene_min`.
     pub scene_max: [f32; 3],
     /// What gave the scene box.
     pub scene_box: SceneBoxOrigin,
@@ -94,6 +99,16 @@ impl Dataset {
 }
 
 /// Deterministic held-out split: every `every`-th frame (0, every, 2*every, ...) is a test view.
+/// Returns the training and test frame indices, in that order; `every` of 0 counts as 1 (all
+/// frames held out).
+///
+/// ```
+/// use orbit_nerf_host::dataset::split_every;
+///
+/// let (train, test) = split_every(7, 3);
+/// assert_eq!(train, [1, 2, 4, 5]);
+/// assert_eq!(test, [0, 3, 6]);
+/// ```
 pub fn split_every(frame_count: usize, every: usize) -> (Vec<usize>, Vec<usize>) {
     let every = every.max(1);
     (0..frame_count).partition(|i| i % every != 0)

@@ -102,7 +102,8 @@ pub fn write_atomic_with(
     })
 }
 
-/// Encode an RGB8 (3 channels) or L8 (1 channel) image as PNG and write it atomically.
+/// Encode an L8 (1 channel), RGB8 (3) or RGBA8 (4) image, row-major, as PNG and write it
+/// atomically; `width` and `height` are in pixels and must match the buffer's length.
 pub fn write_png(path: &Path, width: u32, height: u32, channels: u8, pixels: &[u8]) -> Result<()> {
     let color = match channels {
         1 => image::ExtendedColorType::L8,

@@ -29,7 +29,8 @@ pub fn limit_or_default(user: Option<u64>) -> Option<u64> {
 /// One named part of a plan, in bytes.
 pub type Part = (&'static str, u64);
 
-/// Fail, naming `what` and listing `parts`, when their sum exceeds `limit`.
+/// Fail, naming `what` and listing `parts`, when their sum exceeds `limit` (bytes; `None`
+/// means no limit).
 pub fn check_plan(what: &Path, parts: &[Part], limit: Option<u64>) -> Result<()> {
     let total = total(parts);
     let Some(limit) = limit else {
@@ -153,7 +154,15 @@ fn image_files(dir: &Path, depth: usize) -> Vec<std::path::PathBuf> {
     files
 }
 
-/// Bytes as KiB, MiB or GiB, for messages.
+/// Bytes as KiB (below 1 MiB), MiB or GiB (from 1 GiB), one decimal, for messages.
+///
+/// ```
+/// use orbit_nerf_host::memory::human;
+///
+/// assert_eq!(human(512), "0.5 KiB");
+/// assert_eq!(human(3 << 20), "3.0 MiB");
+/// assert_eq!(human(5 << 30), "5.0 GiB");
+/// ```
 pub fn human(bytes: u64) -> String {
     let mib = bytes as f64 / (1u64 << 20) as f64;
     if mib < 1.0 {

@@ -1,5 +1,5 @@
 //! New views: camera paths around the target (a circle at the dataset's mean camera distance,
-//! or a path file) and the animated GIF of their renders.
+//! or a path file), their renders, the animated GIF and the MP4 of them.
 //!
 //! **Path file** (text, UTF-8): one camera per line, `eye_x eye_y eye_z target_x target_y
 //! target_z`, optionally followed by `up_x up_y up_z` (default: the dataset's mean camera
@@ -9,19 +9,26 @@
 //! be parallel to the view direction.
 
 use crate::error::{HostError, Result};
+use crate::pipeline::SplitData;
+use crate::train::to_rgb8;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbaImage};
-use orbit_nerf_core::Pose;
 use orbit_nerf_core::glam::{Mat3, Vec3};
-use std::path::Path;
+use orbit_nerf_core::{Executor, Pose, Trainer};
+use std::path::{Path, PathBuf};
 
 /// Where the dataset's cameras are, as an orbit needs it: its centre, the mean camera up,
 /// the mean distance to the centre and the mean elevation above the plane normal to up.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Surroundings {
+    /// The point the cameras are measured from (the scene box centre), world units.
     pub centre: Vec3,
+    /// The cameras' mean up (unit length), the orbit's axis.
     pub up: Vec3,
+    /// Mean distance of the cameras from `centre`, world units (always finite and > 0).
     pub distance: f32,
+    /// Mean elevation of the cameras above the plane through `centre` normal to `up`, degrees
+    /// (negative below it).
     pub elevation_deg: f32,
     /// Unit direction (normal to up) of the first camera, where the orbit starts.
     pub start: Vec3,
@@ -186,6 +193,166 @@ pub fn write_gif(
         }
     }
     crate::io::write_atomic(path, &bytes)
+}
+
+/// The cameras of a new-view render.
+#[derive(Clone, Debug)]
+pub enum CameraPath {
+    /// `count` views on a circle about the training cameras' mean up through the box centre,
+    /// at their mean distance, at `elevation_deg` (default: their mean elevation).
+    Orbit {
+        /// Views on the circle.
+        count: usize,
+        /// Elevation above the plane normal to the mean up, degrees (-89 to 89).
+        elevation_deg: Option<f32>,
+    },
+    /// The cameras of a path file (see the module's documentation).
+    File(PathBuf),
+}
+
+/// What [`render_path`] wrote.
+#[derive(Clone, Debug)]
+pub struct RenderedPath {
+    /// Views rendered (`orbit_NNNN.png` each).
+    pub count: usize,
+    /// Their width, pixels.
+    pub width: u32,
+    /// Their height, pixels.
+    pub height: u32,
+    /// The orbit's distance from the box centre, world units.
+    pub distance: f32,
+    /// The animated GIF.
+    pub gif: PathBuf,
+    /// The MP4, when ffmpeg was on the PATH.
+    pub mp4: Option<PathBuf>,
+}
+
+/// The files a path of `count` views writes into `out`: the frames, the GIF and the MP4.
+fn path_outputs(out: &Path, count: usize) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = (0..count)
+        .map(|k| out.join(format!("orbit_{k:04}.png")))
+        .collect();
+    files.push(out.join("orbit.gif"));
+    files.push(out.join("orbit.mp4"));
+    files
+}
+
+/// Render `path`'s cameras with `trainer` (the checkpoint at `checkpoint`, named in errors),
+/// the first training view's intrinsics and the mean training embedding, into `out`:
+/// `orbit_NNNN.png` per view, `orbit.gif` (each frame shown `frame_ms`) and `orbit.mp4` when
+/// ffmpeg is on the PATH. An existing output is refused unless `force`; a render with a
+/// non-finite pixel is refused (the checkpoint is broken).
+pub fn render_path<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    (checkpoint, data): (&Path, &SplitData),
+    path: &CameraPath,
+    out: &Path,
+    (frame_ms, force): (u32, bool),
+) -> Result<RenderedPath> {
+    crate::io::check_output_folder(out)?;
+    let dataset = &data.dataset;
+    let camera = dataset.frames[0].camera;
+    let training: Vec<Pose> = (data.train.iter())
+        .map(|&i| dataset.frames[i].pose)
+        .collect();
+    let c = *trainer.config();
+    let centre = (Vec3::from_array(c.aabb_min) + Vec3::from_array(c.aabb_max)) * 0.5;
+    let around = surroundings(&training, centre).ok_or_else(|| {
+        HostError::invalid(
+            &dataset.source,
+            "the training cameras give no orbit (none, or all at the box centre)",
+        )
+    })?;
+    let poses = match path {
+        CameraPath::File(file) => read_path(file, around.up)?,
+        CameraPath::Orbit {
+            count,
+            elevation_deg,
+        } => {
+            let elevation = elevation_deg.unwrap_or(around.elevation_deg.clamp(-89.0, 89.0));
+            // At +-90 degrees the view runs along up: no camera looks there with that up.
+            if !(-89.0..=89.0).contains(&elevation) || *count == 0 {
+                return Err(HostError::invalid(
+                    out,
+                    format!(
+                        "an orbit needs 1 or more views at an elevation of -89 to 89 degrees, not {count} at {elevation}"
+                    ),
+                ));
+            }
+            orbit(&around, *count, elevation)
+        }
+    };
+    let files = path_outputs(out, poses.len());
+    crate::io::check_new_files(files.iter().map(PathBuf::as_path), force)?;
+    let mut embedding = vec![0.0f32; c.embedding_dim as usize];
+    trainer.mean_embedding(&mut embedding);
+    let (width, height) = (camera.width as u32, camera.height as u32);
+    let mut frames = Vec::with_capacity(poses.len());
+    let mut image = vec![0.0f32; camera.pixel_count() * 3];
+    for (pose, file) in poses.iter().zip(&files) {
+        trainer
+            .render(executor, &camera, pose, &embedding, &mut image)
+            .map_err(|e| HostError::Core(e.to_string()))?;
+        if image.iter().any(|v| !v.is_finite()) {
+            return Err(HostError::invalid(
+                checkpoint,
+                format!(
+                    "the render of {} holds non-finite pixels: the checkpoint is broken",
+                    file.display()
+                ),
+            ));
+        }
+        let rgb = to_rgb8(&image);
+        crate::io::write_png(file, width, height, 3, &rgb)?;
+        frames.push(rgb);
+    }
+    let gif = files[poses.len()].clone();
+    write_gif(&gif, width, height, &frames, frame_ms)?;
+    let mp4 = encode_mp4(out, poses.len(), frame_ms, &files[poses.len() + 1])?;
+    Ok(RenderedPath {
+        count: poses.len(),
+        width,
+        height,
+        distance: around.distance,
+        gif,
+        mp4,
+    })
+}
+
+/// `mp4` from the frames `orbit_NNNN.png` in `out` with ffmpeg when it is on the PATH
+/// (written to a temporary name and renamed); `None` without it.
+fn encode_mp4(out: &Path, frames: usize, frame_ms: u32, mp4: &Path) -> Result<Option<PathBuf>> {
+    let ffmpeg = std::process::Command::new("ffmpeg")
+        .arg("-version")
+        .output();
+    if !ffmpeg.is_ok_and(|o| o.status.success()) || frames == 0 {
+        return Ok(None);
+    }
+    let tmp = out.join(format!("orbit.tmp{}.mp4", std::process::id()));
+    let result = std::process::Command::new("ffmpeg")
+        .args(["-loglevel", "error", "-y", "-framerate"])
+        .arg(format!("{}/{frame_ms}", 1000))
+        .arg("-i")
+        .arg(out.join("orbit_%04d.png"))
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&tmp)
+        .status();
+    match result {
+        Ok(s) if s.success() => {
+            std::fs::rename(&tmp, mp4).map_err(|e| HostError::io(mp4, e))?;
+            Ok(Some(mp4.to_path_buf()))
+        }
+        _ => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(HostError::invalid(mp4, "ffmpeg failed to write it"))
+        }
+    }
 }
 
 #[cfg(test)]

@@ -62,10 +62,13 @@ pub struct DataSettings {
 
 /// A dataset with its training and held-out view indices.
 pub struct SplitData {
+    /// Every frame as read (masks already applied where asked).
     pub dataset: Dataset,
     /// Every frame's exact pose, when the data has them (`truth.json`).
     pub truth: Option<Vec<orbit_nerf_core::Pose>>,
+    /// Indices into `dataset.frames` of the training views.
     pub train: Vec<usize>,
+    /// Indices into `dataset.frames` of the held-out (scored) views.
     pub test: Vec<usize>,
     /// How many views a mask was applied to.
     pub masked: usize,
@@ -172,8 +175,11 @@ pub struct RunRecord {
 /// The data flags as given on a command line: `None` where a flag was left out.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct DataChoice {
+    /// `--data`: the dataset folder.
     pub data: Option<PathBuf>,
+    /// `--size`: longest image side, pixels (default [`DEFAULT_SIZE`]).
     pub size: Option<u32>,
+    /// `--holdout`: every N-th view is held out (default [`DEFAULT_HOLDOUT`]).
     pub holdout: Option<usize>,
     /// `--no-masks` was given.
     pub no_masks: bool,
@@ -333,6 +339,7 @@ impl RunRecord {
 /// A model config and where it came from.
 #[derive(Clone, Debug)]
 pub struct ChosenConfig {
+    /// The config: the preset's, with the config file's fields on top when one was given.
     pub config: Config,
     /// The preset it started from.
     pub preset: &'static str,
@@ -407,6 +414,109 @@ pub fn stated_box(
     })
 }
 
+/// Set `dataset`'s scene box by the rule: `flag` (`--scene-box`), else a config file that
+/// sets one, else the data's own, else found from the training views `train_idx`. Returns
+/// one line saying the box and why.
+pub fn choose_box(
+    dataset: &mut Dataset,
+    flag: Option<([f32; 3], [f32; 3])>,
+    config_file: Option<&Path>,
+    train_idx: &[usize],
+) -> Result<String> {
+    let stated = stated_box(flag, config_file)?;
+    scene_box::choose_scene_box(dataset, stated, train_idx)
+}
+
+/// The fields of a config a user overrides on the command line (`None`: the config's own).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Overrides {
+    /// Training steps (the warm-up is cut to them).
+    pub steps: Option<u32>,
+    /// Random seed.
+    pub seed: Option<u64>,
+    /// Appearance embedding size per frame (0 disables it).
+    pub embedding_dim: Option<u16>,
+    /// Learn a pose correction per frame.
+    pub pose_correction: Option<bool>,
+}
+
+impl Overrides {
+    /// `config` with these fields set.
+    pub fn apply(&self, config: &mut Config) {
+        if let Some(steps) = self.steps {
+            config.steps = steps;
+            config.warmup_steps = config.warmup_steps.min(steps);
+        }
+        if let Some(seed) = self.seed {
+            config.seed = seed;
+        }
+        if let Some(dim) = self.embedding_dim {
+            config.embedding_dim = dim;
+        }
+        if let Some(on) = self.pose_correction {
+            config.pose_correction = on;
+        }
+    }
+}
+
+/// Score `views` of `data` with the checkpoint at `path` (restored with its own config), at
+/// their exact poses when the data has them, fitting each view's embedding (and with
+/// `align_poses` its pose correction) for `fit_steps`; renders go to `renders` when given.
+/// The model, the data and the renders are checked against `memory_limit` together first.
+pub fn evaluate_checkpoint(
+    path: &Path,
+    (threads, memory_limit): (usize, Option<u64>),
+    data: &SplitData,
+    views: &[usize],
+    (fit_steps, align_poses): (u32, bool),
+    renders: Option<&Path>,
+) -> Result<Vec<ViewScore>> {
+    let executor = RayonExecutor::new(threads)?;
+    let resident = data.resident_parts();
+    with_checkpoint(path, memory_limit, &resident, |trainer| {
+        train::evaluate_at(
+            trainer,
+            &executor,
+            &data.dataset,
+            views,
+            data.truth.as_deref(),
+            (fit_steps, align_poses),
+            renders,
+        )
+    })
+}
+
+/// The surface of the density of the checkpoint at `checkpoint` as a coloured mesh (the mean
+/// training embedding's colours), sampled on `options`' grid with `threads` workers. The
+/// model and the grid are checked against `memory_limit` together before either is
+/// allocated, and the mesh once its cells are counted; the threshold used goes to `say`.
+pub fn extract_surface(
+    checkpoint: &Path,
+    options: &SurfaceOptions,
+    (threads, memory_limit): (usize, Option<u64>),
+    say: &mut dyn FnMut(String),
+) -> Result<crate::geometry::Mesh> {
+    let executor = RayonExecutor::new(threads)?;
+    let grid = extract::grid_parts(&checkpoint_config(checkpoint)?, options);
+    with_checkpoint(checkpoint, memory_limit, &grid, |trainer| {
+        let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
+        trainer.mean_embedding(&mut embedding);
+        say(format!(
+            "surface at density {:.4} on a grid of {} samples along the longest side",
+            extract::threshold(trainer, options),
+            options.resolution
+        ));
+        crate::geometry::extract_surface(
+            trainer,
+            &executor,
+            &embedding,
+            options,
+            checkpoint,
+            memory::limit_or_default(memory_limit),
+        )
+    })
+}
+
 /// A trainer over a fresh arena of `config`, with `frames` loaded into slots 0, 1, ...; the
 /// arena and the `resident` parts the caller holds beside it (its data, its outputs) are
 /// checked against `memory_limit` (or a share of the machine's memory) before the arena is
@@ -437,6 +547,15 @@ pub fn checkpoint_config(path: &Path) -> Result<Config> {
     train::decode_config(path, &kind, &config)
 }
 
+/// The memory the model of the checkpoint at `path` takes once restored (its arena's parts),
+/// from the head of the file alone: what a command checks beside the data it reads.
+pub fn checkpoint_parts(path: &Path) -> Result<Vec<Part>> {
+    Ok(memory::with_arena(
+        &[],
+        &MemoryPlan::new(&checkpoint_config(path)?),
+    ))
+}
+
 /// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config,
 /// restored section by section: no copy of the model), the arena and the `resident` parts a
 /// command holds beside it checked against `memory_limit` first.
@@ -456,7 +575,9 @@ pub fn with_checkpoint<R, E: From<HostError>>(
 /// Whether training goes on after a step.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Flow {
+    /// Take the next step (until the loop's end step).
     Continue,
+    /// End training after this step (the run is then checkpointed as stopped).
     Stop,
 }
 
@@ -489,7 +610,9 @@ impl Observer for () {
 /// What the steps of [`train_steps`] took.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StepTally {
+    /// Finished training steps (a step given up on a stop request is not counted).
     pub steps: u64,
+    /// Rays traced over those steps.
     pub rays: u64,
     /// Samples the rays met in the scene box (after early stop).
     pub samples: u64,
@@ -507,6 +630,15 @@ impl StepTally {
         self.samples += other.samples;
         self.marched += other.marched;
         self.seconds += other.seconds;
+    }
+
+    /// Count one step's `report` (rays, samples) and set the seconds so far to `seconds`.
+    pub fn count(&mut self, report: &StepReport, seconds: f64) {
+        self.steps += 1;
+        self.rays += report.rays as u64;
+        self.samples += report.samples as u64;
+        self.marched += report.samples_marched as u64;
+        self.seconds = seconds;
     }
 
     /// Samples per ray (after early stop).
@@ -579,10 +711,16 @@ impl Default for TrainOptions {
 /// A training run on a dataset folder, opened and ready: the data read and split, the config
 /// chosen and fitted to it (scene box, capacities).
 pub struct Pipeline {
+    /// How the dataset folder is read (recorded in `run.toml`).
     pub settings: DataSettings,
+    /// The dataset, read and split into training and held-out views.
     pub data: SplitData,
+    /// The model config the run trains with: fitted to the data, or a resumed run's own.
     pub config: Config,
+    /// Name of the preset the config started from.
     pub preset: String,
+    /// Memory limit, bytes, that every stage is checked against (`None`: a share of the
+    /// machine's memory).
     pub memory_limit: Option<u64>,
     /// Lines saying what was chosen and why (preset, masks, scene box), in order.
     pub notes: Vec<String>,
@@ -592,6 +730,7 @@ pub struct Pipeline {
 
 /// One stage of a run's memory plan ([`Pipeline::memory_plan`]).
 pub struct PlannedStage {
+    /// The stage's name: the commands or command line it covers (`train, save, score`).
     pub name: String,
     /// What the stage holds at its peak.
     pub parts: Vec<Part>,
@@ -603,16 +742,22 @@ pub struct PlannedStage {
 pub enum Outcome {
     /// Stopped before the last step (by the observer or `stop_after`), checkpointed.
     Stopped {
+        /// The trainer's step count when it stopped (that of the checkpoint).
         step: u32,
     },
+    /// Reached the last step: poses refined, held-out views scored, `metrics.json` written.
     Finished(Box<FinishedRun>),
 }
 
 /// A finished run's figures (also written to `metrics.json`).
 pub struct FinishedRun {
+    /// What this call's training steps took (a resumed run's earlier steps left out).
     pub tally: StepTally,
+    /// Each held-out view's score, in the order of the held-out views.
     pub scores: Vec<ViewScore>,
+    /// The held-out views' mean metrics.
     pub mean: ViewMetrics,
+    /// The training poses' refinement; `None` without pose correction.
     pub pose_refinement: Option<PoseRefinementFigures>,
 }
 
@@ -704,6 +849,16 @@ impl Pipeline {
         ]
     }
 
+    /// Check every stage of `plan` against the run's memory limit (or the default share of
+    /// the machine's memory): the error names the first stage that does not fit.
+    pub fn check_memory_plan(&self, plan: &[PlannedStage]) -> Result<()> {
+        let limit = memory::limit_or_default(self.memory_limit);
+        for stage in plan {
+            memory::check_plan(Path::new(&stage.name), &stage.parts, limit)?;
+        }
+        Ok(())
+    }
+
     /// The record `train` writes beside the checkpoint.
     pub fn record(&self) -> Result<RunRecord> {
         RunRecord::new(&self.settings, &self.preset, &self.config)
@@ -769,7 +924,7 @@ impl Pipeline {
                 record.write(out)?;
                 io::write_atomic(
                     &out.join("config.toml"),
-                    train::config_to_toml(&config).as_bytes(),
+                    train::config_to_toml(&config)?.as_bytes(),
                 )?;
                 if !finished {
                     return Ok(Outcome::Stopped {

@@ -12,6 +12,7 @@ use std::path::Path;
 /// A built-in config.
 #[derive(Clone, Copy, Debug)]
 pub struct Preset {
+    /// The name commands select it by (`--preset`, a sweep description's `preset`).
     pub name: &'static str,
     /// What it is, for help texts.
     pub about: &'static str,
@@ -77,7 +78,7 @@ impl Preset {
     }
 }
 
-/// The preset called `name`.
+/// The preset called `name`, or `None` if there is none.
 pub fn find(name: &str) -> Option<&'static Preset> {
     PRESETS.iter().find(|p| p.name == name)
 }
@@ -110,6 +111,26 @@ pub fn for_format(format: Format) -> &'static str {
         Format::SpeedPlus => SPACECRAFT,
         Format::NerfSynthetic | Format::Nerfstudio => DEFAULT,
     }
+}
+
+/// A model's shape in one line: its plane scales and resolutions, the two MLPs' widths, the
+/// view-direction degree, the occupancy grid and the rays per step.
+pub fn describe(config: &Config) -> String {
+    format!(
+        "{} scales {:?} x {} features, density MLP {}->{}->{}, colour MLP {}->{}->{}->3, SH degree {}, occupancy {}^3, {} rays/step",
+        config.scales,
+        &config.resolutions[..config.scales as usize],
+        config.features,
+        config.density_inputs(),
+        config.density_hidden,
+        config.density_outputs(),
+        config.colour_inputs(),
+        config.colour_hidden,
+        config.colour_hidden,
+        config.sh_bands,
+        config.occupancy_res,
+        config.rays_per_batch
+    )
 }
 
 #[cfg(test)]

@@ -1,9 +1,11 @@
 //! Where the time goes: the clock the host lends the core's stage timers (feature `profile`),
 //! and the per-stage table and stacked bar chart `bench --profile` prints and writes.
 
+use crate::dataset::Dataset;
 use crate::error::Result;
 use crate::report::{markdown_table, stacked_bars};
 use orbit_nerf_core::profile::{Stage, StageTimes};
+use orbit_nerf_core::{Executor, Trainer};
 use std::path::Path;
 use std::sync::OnceLock;
 use std::time::Instant;
@@ -130,4 +132,86 @@ pub fn write_chart(path: &Path, title: &str, step: &Breakdown, view: &Breakdown)
         &names,
         &bars,
     )
+}
+
+/// The timed training steps of `bench --profile`, and the views to time renders on.
+pub struct Timed<'d> {
+    /// Worker threads of the timed steps.
+    pub threads: usize,
+    /// Steps timed.
+    pub steps: u32,
+    /// Their wall time, nanoseconds.
+    pub steps_ns: u64,
+    /// The dataset of the views.
+    pub dataset: &'d Dataset,
+    /// The held-out views rendered with the clock running.
+    pub views: &'d [usize],
+}
+
+/// Lend `trainer` the host's clock, forgetting the times so far (the warm-up's).
+pub fn start(trainer: &mut Trainer<'_>) {
+    trainer.set_clock(Some(clock_ns));
+    trainer.reset_profile();
+}
+
+/// The timed steps' stage times, then every held-out view of `timed` fitted (`fit_steps` on
+/// its left half) and rendered with the clock running: both tables as markdown. With
+/// `chart` (a PNG path and the data's name for its title) also the stacked bar chart. The
+/// clock is taken back at the end.
+pub fn report<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    timed: &Timed<'_>,
+    fit_steps: u32,
+    chart: Option<(&Path, &str)>,
+) -> Result<String> {
+    let profile = trainer.profile();
+    let step = Breakdown {
+        cpu: profile.train_cpu,
+        wall: profile.train_wall,
+        elapsed_ns: timed.steps_ns,
+        count: timed.steps,
+    };
+    trainer.reset_profile();
+    let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
+    trainer.mean_embedding(&mut mean);
+    let start = Instant::now();
+    for &index in timed.views {
+        let frame = &timed.dataset.frames[index];
+        let (embedding, pose) =
+            crate::train::fit_held_out(trainer, executor, frame, fit_steps, false, &mean)
+                .map_err(|e| crate::HostError::Core(e.to_string()))?;
+        let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
+        trainer
+            .render(executor, &frame.camera, &pose, &embedding, &mut out)
+            .map_err(|e| crate::HostError::Core(e.to_string()))?;
+    }
+    let profile = trainer.profile();
+    let view = Breakdown {
+        cpu: profile.render_cpu,
+        wall: profile.render_wall,
+        elapsed_ns: start.elapsed().as_nanos() as u64,
+        count: timed.views.len() as u32,
+    };
+    trainer.set_clock(None);
+    let threads = timed.threads;
+    let fit = if mean.is_empty() {
+        "no appearance embedding to fit".to_string()
+    } else {
+        format!("{fit_steps} embedding-fit steps on the left half")
+    };
+    let text = format!(
+        "### {threads} thread(s): a training step (mean of {} steps)\n\n{}\n\
+         ### {threads} thread(s): a held-out view ({fit}, then the whole view; mean of {} \
+         views)\n\n{}\n",
+        step.count,
+        step.table("step"),
+        view.count,
+        view.table("view"),
+    );
+    if let Some((path, data)) = chart {
+        let title = format!("{data}: where the time goes, {threads} thread(s)");
+        write_chart(path, &title, &step, &view)?;
+    }
+    Ok(text)
 }

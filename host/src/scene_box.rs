@@ -62,12 +62,17 @@ pub enum Silhouettes {
 /// A box found from the data, with what it was found from.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FoundBox {
+    /// Lower corner, world units (the poses' units), margin included.
     pub min: [f32; 3],
+    /// Upper corner, world units, margin included.
     pub max: [f32; 3],
+    /// Frames carved from (those with a valid camera, pose and pixels).
     pub frames: usize,
+    /// Where the frames' foreground came from.
     pub silhouettes: Silhouettes,
     /// Voxels per side of the final carving pass.
     pub grid: usize,
+    /// Margin added on every side, as a share of the hull's extent along that axis.
     pub margin_share: f32,
 }
 
@@ -100,20 +105,26 @@ impl fmt::Display for FoundBox {
 /// Why no box could be found.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum BoxError {
+    /// Fewer than 2 frames have a valid camera, pose and pixels; holds how many do.
     #[error(
         "cannot find a scene box: {0} usable frames (need at least 2 with a valid camera and pose)"
     )]
     TooFewFrames(usize),
+    /// The optical axes are (nearly) parallel, or meet behind most of the cameras.
     #[error(
         "cannot find a scene box: the camera axes do not converge on a point in front of the cameras"
     )]
     NoFocus,
+    /// No frame shows a single foreground pixel.
     #[error("cannot find a scene box: no frame shows any target pixel (every silhouette is empty)")]
     EmptySilhouettes,
+    /// Every voxel was carved away: the silhouettes and poses do not agree on any point.
     #[error(
         "cannot find a scene box: the silhouettes disagree, no point in space is target in the views that see it"
     )]
     EmptyHull,
+    /// The hull still touched the border after the search volume grew to its limit; holds
+    /// the search volume's width in world units.
     #[error(
         "cannot find a scene box: the target fills the views out to the edge of a search volume {0:.3e} wide"
     )]
@@ -245,21 +256,20 @@ pub fn find_scene_box_with(frames: &[Frame], carving: &Carving) -> Result<FoundB
     }
 
     let (focus, mut half) = search_volume(&usable)?;
-    let mut lo = focus - DVec3::splat(half);
-    let mut hi = focus + DVec3::splat(half);
-    let mut coarse = None;
-    for _ in 0..=MAX_GROWTH {
+    let mut growth = 0;
+    let (coarse, lo, hi) = loop {
+        let (lo, hi) = (focus - DVec3::splat(half), focus + DVec3::splat(half));
         let hull =
             carve(&views, lo, hi, COARSE, carving.sky_vote_tolerance).ok_or(BoxError::EmptyHull)?;
         if !hull.touches_border {
-            coarse = Some(hull);
-            break;
+            break (hull, lo, hi);
         }
+        if growth == MAX_GROWTH {
+            return Err(BoxError::Unbounded(2.0 * half));
+        }
+        growth += 1;
         half *= 2.0;
-        lo = focus - DVec3::splat(half);
-        hi = focus + DVec3::splat(half);
-    }
-    let coarse = coarse.ok_or(BoxError::Unbounded(2.0 * half))?;
+    };
     // The fine pass covers the coarse hull with one coarse voxel to spare on every side.
     let coarse_voxel = (hi - lo) / COARSE as f64;
     let fine = carve(
@@ -288,8 +298,11 @@ pub fn find_scene_box_with(frames: &[Frame], carving: &Carving) -> Result<FoundB
 /// A box the user stated, with what stated it (`--scene-box`, a config file).
 #[derive(Clone, Debug, PartialEq)]
 pub struct StatedBox {
+    /// Lower corner, world units.
     pub min: [f32; 3],
+    /// Upper corner, world units.
     pub max: [f32; 3],
+    /// What stated it, for messages (e.g. `--scene-box`, a config file's path).
     pub by: String,
 }
 
@@ -362,7 +375,16 @@ pub fn choose_scene_box(
     Ok(account)
 }
 
-/// A box as `[xmin, ymin, zmin] .. [xmax, ymax, zmax]` (millimetre precision).
+/// A box as `[xmin, ymin, zmin] .. [xmax, ymax, zmax]`, three decimals (millimetres when the
+/// units are metres).
+///
+/// ```
+/// use orbit_nerf_host::scene_box::{box_text, parse_box};
+///
+/// let (min, max) = parse_box("-1.5, -1.5, -1, 1.5, 1.5, 2").unwrap();
+/// assert_eq!((min, max), ([-1.5, -1.5, -1.0], [1.5, 1.5, 2.0]));
+/// assert_eq!(box_text(min, max), "[-1.500, -1.500, -1.000] .. [1.500, 1.500, 2.000]");
+/// ```
 pub fn box_text(min: [f32; 3], max: [f32; 3]) -> String {
     format!(
         "[{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]",
@@ -371,7 +393,16 @@ pub fn box_text(min: [f32; 3], max: [f32; 3]) -> String {
 }
 
 /// Parse a box typed as `xmin,ymin,zmin,xmax,ymax,zmax`: six finite numbers, each min below
-/// its max.
+/// its max. The error is a message for the user.
+///
+/// ```
+/// use orbit_nerf_host::scene_box::parse_box;
+///
+/// assert!(parse_box("0,0,0,1,1,1").is_ok());
+/// assert!(parse_box("0,0,0,1,1").is_err()); // five numbers
+/// assert!(parse_box("0,0,2,1,1,1").is_err()); // z min above z max
+/// assert!(parse_box("0,0,0,1,1,inf").is_err());
+/// ```
 pub fn parse_box(text: &str) -> std::result::Result<([f32; 3], [f32; 3]), String> {
     let values: Vec<f32> = text
         .split(',')
@@ -756,6 +787,39 @@ mod tests {
         assert_eq!(find_scene_box(&parallel), Err(BoxError::NoFocus));
         let message = BoxError::EmptyHull.to_string();
         assert!(message.starts_with("cannot find a scene box"), "{message}");
+    }
+
+    #[test]
+    fn an_unbounded_hull_reports_the_width_last_searched() {
+        // Cameras on a narrow cone round -z, every pixel target: all of them see the voxels far
+        // beyond the origin along +z as target, so the hull outgrows every search volume.
+        let mut frames = box_frames(
+            Vec3::splat(-0.5),
+            Vec3::splat(0.5),
+            Vec3::ZERO,
+            5.0,
+            8,
+            true,
+        );
+        let tilt = 15f32.to_radians();
+        for (n, f) in frames.iter_mut().enumerate() {
+            let azimuth = n as f32 * std::f32::consts::TAU / 8.0;
+            let eye = 5.0
+                * Vec3::new(
+                    tilt.sin() * azimuth.cos(),
+                    tilt.sin() * azimuth.sin(),
+                    -tilt.cos(),
+                );
+            f.pose = look_at(eye, Vec3::ZERO);
+            f.mask.as_mut().unwrap().fill(255);
+        }
+        let usable: Vec<&Frame> = frames.iter().collect();
+        let (_, first_half) = search_volume(&usable).unwrap();
+        let last_width = 2.0 * first_half * 2f64.powi(MAX_GROWTH as i32);
+        assert_eq!(
+            find_scene_box(&frames),
+            Err(BoxError::Unbounded(last_width))
+        );
     }
 
     #[test]

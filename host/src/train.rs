@@ -134,8 +134,15 @@ pub fn config_scene_box(path: &Path) -> Result<Option<([f32; 3], [f32; 3])>> {
     }
 }
 
-pub fn config_to_toml(config: &Config) -> String {
-    toml::to_string(config).unwrap_or_default()
+/// `config` as TOML, every field written (what runs store as `config.toml`).
+pub fn config_to_toml(config: &Config) -> Result<String> {
+    to_toml(Path::new("config.toml"), config)
+}
+
+/// `value` as the TOML text of `file`, which the error names when TOML cannot hold a value.
+fn to_toml<T: serde::Serialize + ?Sized>(file: &Path, value: &T) -> Result<String> {
+    toml::to_string(value)
+        .map_err(|e| HostError::invalid(file, format!("cannot be written as TOML: {e}")))
 }
 
 /// Runs the core's chunks on a rayon pool of a fixed size.
@@ -144,6 +151,7 @@ pub struct RayonExecutor {
 }
 
 impl RayonExecutor {
+    /// A pool of `threads` worker threads (0 counts as 1).
     pub fn new(threads: usize) -> Result<Self> {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads.max(1))
@@ -244,7 +252,9 @@ pub fn check_frames_have_content<'f>(
 /// What a training run took: steps, and the samples its rays met in the scene box.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct TrainingTally {
+    /// Training steps run.
     pub steps: u64,
+    /// Samples the steps' rays took inside the scene box, summed over all rays.
     pub samples: u64,
 }
 
@@ -401,16 +411,18 @@ pub fn restore_from<R: std::io::Read + std::io::Seek>(
 /// Held-out quality of one view.
 #[derive(Clone, Debug)]
 pub struct ViewScore {
+    /// The view's frame index in the dataset.
     pub index: usize,
+    /// The view's image file name.
     pub name: String,
     /// The image metrics of the render against the view's reference (`report::score_view`,
     /// the one definition every command reports).
     pub metrics: ViewMetrics,
     /// Mean samples per ray of the rendering.
     pub samples_per_ray: f32,
-    /// Wall time of fitting the view's embedding and rendering it.
+    /// Wall time of fitting the view's embedding and rendering it, seconds.
     pub seconds: f64,
-    /// The rendering, RGB f32 in [0, 1].
+    /// The rendering, row-major RGB f32 in [0, 1].
     pub render: Vec<f32>,
 }
 
@@ -633,6 +645,27 @@ pub fn evaluate_at<E: Executor>(
 mod tests {
     use super::*;
 
+    /// An encoding failure is an error naming the file, never an empty file written as if
+    /// all went well; a config encodes and reads back whole.
+    #[test]
+    fn a_value_toml_cannot_hold_is_an_error_not_an_empty_text() {
+        let config = Config {
+            // The largest seed a TOML integer (i64) holds.
+            seed: i64::MAX as u64,
+            replacement: orbit_nerf_core::Replacement::Coverage,
+            ..Config::SPACECRAFT
+        };
+        let text = config_to_toml(&config).unwrap();
+        let path = Path::new("config.toml");
+        assert_eq!(parse_config(path, &text, &Config::DEFAULT).unwrap(), config);
+        // A TOML document is a table: a bare number cannot be one.
+        let error = to_toml(path, &5u32).unwrap_err().to_string();
+        assert!(
+            error.starts_with("config.toml: cannot be written as TOML"),
+            "{error}"
+        );
+    }
+
     #[test]
     fn a_partial_config_file_changes_only_its_fields() {
         let dir = tempfile::tempdir().unwrap();
@@ -656,7 +689,7 @@ mod tests {
         // An empty file is the base; a full file is itself whatever the base.
         std::fs::write(&path, "").unwrap();
         assert_eq!(read_config(&path, &base).unwrap(), base);
-        std::fs::write(&path, config_to_toml(&changed)).unwrap();
+        std::fs::write(&path, config_to_toml(&changed).unwrap()).unwrap();
         assert_eq!(read_config(&path, &Config::DEFAULT).unwrap(), changed);
         // An unknown field, a value of the wrong type or out of range: the file and the field.
         for (text, field) in [

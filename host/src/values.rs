@@ -5,7 +5,7 @@
 use std::ops::RangeInclusive;
 use std::time::Duration;
 
-/// A finite number within `range`.
+/// A finite number within `range`; `inf`, `nan` and text that is not a number are refused.
 pub fn number_in(text: &str, range: RangeInclusive<f64>) -> Result<f64, String> {
     let value: f64 = text
         .trim()
@@ -29,7 +29,17 @@ pub const MAX_TIMEOUT_SECONDS: f64 = 1e9;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Timeout(pub Option<Duration>);
 
-/// A timeout in seconds, greater than 0: `inf` means wait for ever.
+/// A timeout in seconds, greater than 0 and at most [`MAX_TIMEOUT_SECONDS`]: `inf` means
+/// wait for ever.
+///
+/// ```
+/// use orbit_nerf_host::values::{Timeout, timeout_seconds};
+/// use std::time::Duration;
+///
+/// assert_eq!(timeout_seconds("inf"), Ok(Timeout(None)));
+/// assert_eq!(timeout_seconds("2.5"), Ok(Timeout(Some(Duration::from_millis(2500)))));
+/// assert!(timeout_seconds("0").is_err());
+/// ```
 pub fn timeout_seconds(text: &str) -> Result<Timeout, String> {
     if matches!(
         text.trim().to_ascii_lowercase().as_str(),
@@ -46,7 +56,17 @@ pub fn timeout_seconds(text: &str) -> Result<Timeout, String> {
 }
 
 /// A size in bytes: a whole number with an optional unit `K`, `M`, `G`, `T` (powers of 1024,
-/// `KiB`/`KB` spellings too), greater than 0.
+/// `KiB`/`KB` spellings too), greater than 0. Fractions (`1.5G`) are refused.
+///
+/// ```
+/// use orbit_nerf_host::values::byte_size;
+///
+/// assert_eq!(byte_size("512M"), Ok(512 * 1024 * 1024));
+/// assert_eq!(byte_size("8 GiB"), Ok(8 << 30));
+/// assert_eq!(byte_size("4096"), Ok(4096));
+/// assert!(byte_size("0G").is_err());
+/// assert!(byte_size("1.5G").is_err());
+/// ```
 pub fn byte_size(text: &str) -> Result<u64, String> {
     let text = text.trim();
     let split = text

@@ -2,25 +2,17 @@
 //! correction on one scene), its pose-noise sweep on the `synthetic` preset and its
 //! image-count study (run as a sweep).
 
-use super::tradeoff::{absolute, scene_reference};
 use super::{
-    FIT_STEPS, Fallible, SceneBox, choose_box, machine_threads, parse_scene_box, parse_threads,
-    preset_config, preset_parser,
+    FIT_STEPS, Fallible, SceneBox, machine_threads, parse_scene_box, parse_threads, preset_config,
+    preset_parser,
 };
 use orbit_nerf_core::Config;
-use orbit_nerf_host::ablation::{
-    self, APPEARANCE, APPEARANCE_POSE, BASELINE, Experiment, VariantResult,
-};
-use orbit_nerf_host::ablation_report::{
-    experiment_report, load, simulated, stated_label_noise, true_surface,
-};
-use orbit_nerf_host::dataset::{split_every, with_test_set};
+use orbit_nerf_host::ablation_report::{self, AblationData};
 use orbit_nerf_host::formats::Format;
+use orbit_nerf_host::pipeline::Overrides;
 use orbit_nerf_host::presets;
-use orbit_nerf_host::report::{self, ModelOutcome, NoiseLevelResult};
-use orbit_nerf_host::sim::scene::LabelNoise;
-use orbit_nerf_host::sweep::{FrameCounts, NoiseLevels, SweepDescription};
-use std::path::{Path, PathBuf};
+use orbit_nerf_host::sweep::studies::{self, ImageCounts, StudyData};
+use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct AblateArgs {
@@ -30,12 +22,13 @@ pub struct AblateArgs {
     /// Use this dataset (SPEED+/SHIRT/simulator, NeRF-synthetic or nerfstudio) instead of simulating one.
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Frames to simulate.
-    #[arg(long, default_value_t = 400)]
+    /// Frames to simulate, 2 to 100000.
+    #[arg(long, default_value_t = 400, value_parser = clap::value_parser!(u32).range(2..=100_000))]
     pub frames: u32,
     /// Image size in pixels: the simulated frames' side, or the longer side a --data set's
-    /// frames are resized to (never upsampled).
-    #[arg(long, default_value_t = orbit_nerf_host::pipeline::DEFAULT_SIZE as u16)]
+    /// frames are resized to (never upsampled); at least 22, so each half of a held-out view
+    /// is wide enough for SSIM's 11x11 window.
+    #[arg(long, default_value_t = orbit_nerf_host::pipeline::DEFAULT_SIZE as u16, value_parser = clap::value_parser!(u16).range(22..))]
     pub size: u16,
     /// Training steps of every model (the same budget for all; default: the config's).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
@@ -119,13 +112,42 @@ pub enum Sweep {
 }
 
 pub fn run(args: &AblateArgs) -> Fallible<()> {
+    let data = AblationData {
+        scene: args.scene.clone(),
+        data: args.data.clone(),
+        frames: args.frames,
+        size: args.size,
+        holdout: args.holdout,
+        test_data: args.test_data.clone(),
+        masks: !args.no_masks,
+        scene_box: args.scene_box,
+        config_file: args.config.clone(),
+    };
+    let say = &mut |line: String| println!("{line}");
+    let work = (args.threads, args.fit_steps);
     if args.pose_noise {
-        sweep(args)
+        let levels = (
+            (args.sweep != Sweep::Translation).then(|| args.levels.clone()),
+            (args.sweep != Sweep::Rotation).then(|| args.translation_levels.clone()),
+        );
+        let levels = (levels.0.unwrap_or_default(), levels.1.unwrap_or_default());
+        let model = (args.preset.clone(), args.steps);
+        let sweep = ablation_report::pose_noise_sweep(&data, model, args.fit_steps, levels)?;
+        let text = ablation_report::run_pose_noise_sweeps(&data, &sweep, work, &args.out, say)?;
+        println!("{text}");
     } else if !args.image_counts.is_empty() {
-        image_counts(args)
+        image_counts(args)?;
     } else {
-        ablate(args)
+        // The config is checked before the data is simulated or read.
+        let base = base_config(args)?;
+        let text = ablation_report::run_ablation(&data, &base, work, &args.out, say)?;
+        println!("{text}");
+        println!(
+            "report, metrics.json and pictures in {}",
+            args.out.display()
+        );
     }
+    Ok(())
 }
 
 /// The models' base config: `--preset` (default `spacecraft`: the data is a spacecraft's), a
@@ -142,287 +164,36 @@ fn base_config(args: &AblateArgs) -> Fallible<Config> {
         data,
         args.config.as_deref(),
     )?;
-    if let Some(steps) = args.steps {
-        config.steps = steps;
-        config.warmup_steps = config.warmup_steps.min(steps);
-    }
-    Ok(config)
-}
-
-fn ablate(args: &AblateArgs) -> Fallible<()> {
-    // The config is checked before the data is simulated or read.
-    let mut base = base_config(args)?;
-    if args.data.is_none() {
-        stated_label_noise(&args.scene)?.state_in(&mut base);
-    }
-    let (dataset, truth) = match &args.data {
-        Some(path) => load(path, args.size, !args.no_masks)?,
-        None => simulated(
-            &args.scene,
-            args.frames,
-            args.size,
-            None,
-            &args.out.join("data"),
-            !args.no_masks,
-        )?,
-    };
-    let (mut dataset, truth, train_idx, test_idx) = match &args.test_data {
-        Some(test) => with_test_set((dataset, truth), load(test, args.size, !args.no_masks)?),
-        None => {
-            let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
-            (dataset, truth, train_idx, test_idx)
-        }
-    };
-    choose_box(
-        &mut dataset,
-        args.scene_box,
-        args.config.as_deref(),
-        &train_idx,
-    )?;
-    let mut results: Vec<VariantResult> = Vec::new();
-    for variant in [BASELINE, APPEARANCE, APPEARANCE_POSE] {
-        println!(
-            "training {} ({} views, {} steps)",
-            variant.name,
-            train_idx.len(),
-            base.steps
-        );
-        let result = ablation::run_variant(
-            &dataset,
-            truth.as_deref(),
-            &train_idx,
-            &test_idx,
-            &base,
-            variant,
-            args.threads,
-            args.fit_steps,
-            &mut |_, _| {},
-        )?;
-        println!(
-            "  {:.1} s, held-out PSNR {:.2} dB",
-            result.train_seconds, result.metrics.psnr_full
-        );
-        results.push(result);
-    }
-    let held_out = match &args.test_data {
-        Some(test) => format!(
-            "trained on all {} frames, tested on the {} views of the separate test set `{}`",
-            train_idx.len(),
-            test_idx.len(),
-            test.display()
-        ),
-        None => format!(
-            "{} frames, every {}th held out ({} views)",
-            dataset.frames.len(),
-            args.holdout,
-            test_idx.len()
-        ),
-    };
-    let surface = match &args.data {
-        Some(_) => None,
-        None => Some(true_surface(&args.scene)?),
-    };
-    let source = (args.data.as_ref()).map_or(args.scene.clone(), |p| p.display().to_string());
-    let text = experiment_report(
-        &format!("Ablation on `{source}`"),
-        &format!(
-            "{held_out}, {} px, {} steps per model; held-out embeddings fitted for {} steps on the left half.",
-            args.size, base.steps, args.fit_steps
-        ),
-        &results,
-        surface.as_deref(),
-        (&dataset, &test_idx),
-        (&args.out, "compare_view_"),
-    )?;
-    orbit_nerf_host::io::write_atomic(&args.out.join("ablation.md"), text.as_bytes())?;
-    let models = results.iter().map(VariantResult::figures).collect();
-    report::Figures::new("ablate", models).write(&args.out)?;
-    println!("{text}");
-    println!(
-        "report, metrics.json and pictures in {}",
-        args.out.display()
-    );
-    Ok(())
-}
-
-/// Train and score `sweep`'s tasks of one noise level (the two models, ours and ours + pose,
-/// on the same simulated labels).
-fn run_level(
-    args: &AblateArgs,
-    sweep: &orbit_nerf_host::sweep::Sweep,
-    noise: LabelNoise,
-    dir: &Path,
-) -> Fallible<NoiseLevelResult> {
-    let (dataset, truth) = simulated(
-        "synthetic",
-        args.frames,
-        args.size,
-        Some(noise),
-        dir,
-        !args.no_masks,
-    )?;
-    let (train_idx, test_idx) = split_every(dataset.frames.len(), args.holdout);
-    println!(
-        "noise {} deg / {} mm",
-        noise.rotation_deg,
-        noise.translation_m * 1000.0
-    );
-    let experiment = Experiment {
-        dataset: &dataset,
-        truth: truth.as_deref(),
-        train_idx: &train_idx,
-        test_idx: &test_idx,
-        threads: args.threads,
-        fit_steps: args.fit_steps,
-        score_at: &[],
-        progress: None,
-    };
-    let run = |variant: &str| -> Fallible<ModelOutcome> {
-        let task = (sweep.tasks.iter())
-            .find(|t| t.noise == Some(noise) && t.variant == variant)
-            .ok_or_else(|| format!("the sweep has no task `{variant}` at this level"))?;
-        let r = experiment.run(&task.config, &mut |_, _| {}, None)?;
-        let after = r.pose_after.unwrap_or_default();
-        println!(
-            "  {}: SSIM {:.4}, rotation error {:.3} deg, position error {:.1} mm",
-            variant,
-            r.metrics.ssim_full,
-            after.rotation_deg_mean,
-            after.translation_mean * 1000.0
-        );
-        Ok(ModelOutcome {
-            metrics: r.metrics,
-            metrics_exact: r.metrics_exact,
-            metrics_aligned: Some(r.metrics_aligned),
-            pose_before: r.pose_before,
-            pose_after: r.pose_after,
-        })
-    };
-    let ours = run(APPEARANCE.name)?;
-    let pose = run(APPEARANCE_POSE.name)?;
-    Ok(NoiseLevelResult { noise, ours, pose })
-}
-
-/// Both sweeps of the paper: rotation noise alone, then translation noise alone (the noise-free
-/// level is trained once and shared), as a sweep description's levels and models. Per level:
-/// SSIM and JNB of ours with and without pose correction, and the pose error of the labels
-/// before and after correction.
-fn sweep(args: &AblateArgs) -> Fallible<()> {
-    let description = SweepDescription {
-        scene: Some("synthetic".into()),
-        frames: Some(FrameCounts::One(args.frames)),
-        size: Some(args.size.into()),
-        preset: args.preset.clone(),
-        config: (args.config.as_ref()).map(|p| p.display().to_string()),
+    let steps = Overrides {
         steps: args.steps,
-        holdout: Some(args.holdout),
-        fit_steps: Some(args.fit_steps),
-        masks: Some(!args.no_masks),
-        noise: Some(NoiseLevels {
-            rotation_deg: match args.sweep {
-                Sweep::Translation => Vec::new(),
-                _ => args.levels.clone(),
-            },
-            translation_mm: match args.sweep {
-                Sweep::Rotation => Vec::new(),
-                _ => args.translation_levels.clone(),
-            },
-        }),
-        ..SweepDescription::default()
+        ..Overrides::default()
     };
-    let sweep = description.check(Path::new("ablate --pose-noise"), Path::new(""))?;
-    let mut levels = Vec::new();
-    for noise in sweep.levels().into_iter().flatten() {
-        let dir = args.out.join(format!(
-            "noise_r{}deg_t{}mm",
-            noise.rotation_deg,
-            noise.translation_m * 1000.0
-        ));
-        levels.push(run_level(args, &sweep, noise, &dir)?);
-    }
-    let mut text = format!(
-        "# Pose-noise sweeps on `synthetic`\n\n{} frames of {} px, every {}th held out, {} steps per model, held-out embeddings fitted for {} steps; JNB: paper variant, lower is sharper. Pose errors are the means over the training frames, against the simulator's exact poses.\n",
-        args.frames, args.size, args.holdout, sweep.base.steps, args.fit_steps
-    );
-    text.push_str(&report::pose_noise_sections(
-        &args.out,
-        &sweep.rotation,
-        &sweep.translation,
-        &levels,
-    )?);
-    orbit_nerf_host::io::write_atomic(&args.out.join("pose_noise.md"), text.as_bytes())?;
-    println!("{text}");
-    Ok(())
+    steps.apply(&mut config);
+    Ok(config)
 }
 
 /// The image-count study as a sweep description in `--out` (`image-counts.toml`), run here
 /// by the sweep runner: one task per count and model, every task scored on the same test set.
 fn image_counts(args: &AblateArgs) -> Fallible<()> {
-    let mut table = toml::Table::new();
-    table.insert("scene".into(), scene_reference(&args.scene)?.into());
-    let counts: Vec<i64> = args.image_counts.iter().map(|&n| n as i64).collect();
-    table.insert("frames".into(), counts.into());
-    table.insert(
-        "test_scene".into(),
-        scene_reference(&args.test_scene)?.into(),
-    );
-    if let Some(frames) = args.test_frames {
-        table.insert("test_frames".into(), (frames as i64).into());
-    }
-    table.insert("size".into(), (args.size as i64).into());
-    table.insert("fit_steps".into(), (args.fit_steps as i64).into());
-    table.insert("masks".into(), (!args.no_masks).into());
-    if let Some(preset) = &args.preset {
-        table.insert("preset".into(), preset.clone().into());
-    }
-    if let Some(config) = &args.config {
-        table.insert("config".into(), absolute(config)?.into());
-    }
-    if let Some(steps) = args.steps {
-        table.insert("steps".into(), (steps as i64).into());
-    }
-    if let Some(([x0, y0, z0], [x1, y1, z1])) = args.scene_box {
-        table.insert(
-            "scene_box".into(),
-            format!("{x0},{y0},{z0},{x1},{y1},{z1}").into(),
-        );
-    }
-    let variants: Vec<toml::Value> = [BASELINE, APPEARANCE_POSE]
-        .iter()
-        .map(|model| {
-            let set = toml::Table::from_iter([
-                (
-                    "embedding_dim".to_string(),
-                    i64::from(model.embedding_dim).into(),
-                ),
-                ("pose_correction".to_string(), model.pose_correction.into()),
-            ]);
-            toml::Table::from_iter([
-                ("name".to_string(), model.name.into()),
-                ("set".to_string(), set.into()),
-            ])
-            .into()
-        })
-        .collect();
-    table.insert("variants".into(), variants.into());
-    let description = format!(
-        "# Written by `orbit-nerf ablate --image-counts`: baseline and ours + pose per training-image count.\n{}",
-        toml::to_string(&table).map_err(|e| format!("writing the description: {e}"))?
-    );
+    let data = StudyData {
+        scene: args.scene.clone(),
+        data: None,
+        preset: args.preset.clone(),
+        config: args.config.clone(),
+        steps: args.steps,
+        size: args.size.into(),
+        holdout: args.holdout,
+        fit_steps: args.fit_steps,
+        masks: !args.no_masks,
+    };
+    let study = ImageCounts {
+        counts: args.image_counts.clone(),
+        test_scene: args.test_scene.clone(),
+        test_frames: args.test_frames,
+        scene_box: args.scene_box,
+    };
+    let text = studies::image_count_description(&data, &study)?;
     let path = args.out.join("image-counts.toml");
-    // The description is checked before it is written: a bad value names its field.
-    orbit_nerf_host::sweep::Sweep::parse(&path, &description)?;
-    orbit_nerf_host::io::check_output_folder(&args.out)?;
-    match std::fs::read_to_string(&path) {
-        Ok(earlier) if earlier != description => {
-            return Err(format!(
-                "{}: holds the description of another image-count study; give another --out",
-                path.display()
-            )
-            .into());
-        }
-        Ok(_) => {}
-        Err(_) => orbit_nerf_host::io::write_atomic(&path, description.as_bytes())?,
-    }
+    studies::write_description(&path, &text, "the description of another image-count study")?;
     super::sweep::run_local(&path, &args.out, Some(1), Some(args.threads))
 }

@@ -4,12 +4,10 @@
 use super::{CliResult, Fallible, choose_box, config_for_data, open_dataset, preset_parser};
 use clap::Args;
 use orbit_nerf_core::Trainer;
-use orbit_nerf_host::dataset::Dataset;
-use orbit_nerf_host::machine;
 use orbit_nerf_host::pipeline::{self, DataSettings, SplitData};
 use orbit_nerf_host::train::{self, RayonExecutor};
+use orbit_nerf_host::{machine, presets};
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -90,21 +88,7 @@ pub fn run(args: &BenchArgs) -> CliResult {
     base.warmup_steps = base.warmup_steps.min(base.steps);
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
-    println!(
-        "model: {} scales {:?} x {} features, density MLP {}->{}->{}, colour MLP {}->{}->{}->3, SH degree {}, occupancy {}^3, {} rays/step",
-        config.scales,
-        &config.resolutions[..config.scales as usize],
-        config.features,
-        config.density_inputs(),
-        config.density_hidden,
-        config.density_outputs(),
-        config.colour_inputs(),
-        config.colour_hidden,
-        config.colour_hidden,
-        config.sh_bands,
-        config.occupancy_res,
-        config.rays_per_batch
-    );
+    println!("model: {}", presets::describe(&config));
     println!(
         "{:>7}  {:>12}  {:>10}  {:>11}  {:>14}  {:>9}",
         "threads", "samples/s", "rays/s", "samples/ray", "marched/ray", "ms/step"
@@ -120,7 +104,15 @@ pub fn run(args: &BenchArgs) -> CliResult {
             |trainer| -> Fallible<()> {
                 let warm = trainer.state().step + args.warmup;
                 pipeline::train_steps(trainer, &executor, warm, &mut ())?;
-                start_profile(trainer, args.profile);
+                if args.profile {
+                    profile(
+                        trainer,
+                        &executor,
+                        (threads, None),
+                        (&dataset, &test_idx),
+                        args,
+                    )?;
+                }
                 let end = warm + args.timed_steps;
                 let t = pipeline::train_steps(trainer, &executor, end, &mut ())?;
                 println!(
@@ -132,14 +124,9 @@ pub fn run(args: &BenchArgs) -> CliResult {
                     1000.0 * t.seconds / args.timed_steps as f64
                 );
                 if args.profile {
-                    let timed = Timed {
-                        threads,
-                        steps: args.timed_steps,
-                        steps_ns: (t.seconds * 1e9) as u64,
-                        dataset: &dataset,
-                        views: &test_idx,
-                    };
-                    report.push_str(&profile_report(trainer, &executor, &timed, args)?);
+                    let timed = (threads, Some((t.seconds * 1e9) as u64));
+                    let views = (&dataset, test_idx.as_slice());
+                    report.push_str(&profile(trainer, &executor, timed, views, args)?);
                 }
                 Ok(())
             },
@@ -152,16 +139,6 @@ pub fn run(args: &BenchArgs) -> CliResult {
         println!("wrote {}", path.display());
     }
     Ok(())
-}
-
-/// What the timed steps were, for the profile report (read only by the `profile` build).
-#[cfg_attr(not(feature = "profile"), allow(dead_code))]
-struct Timed<'d> {
-    threads: usize,
-    steps: u32,
-    steps_ns: u64,
-    dataset: &'d Dataset,
-    views: &'d [usize],
 }
 
 #[cfg(feature = "profile")]
@@ -177,92 +154,49 @@ fn check_profile_build(args: &BenchArgs) -> CliResult {
     Ok(())
 }
 
-/// Lend the trainer the host's clock (forgetting the warm-up's times) when profiling.
+/// The profile of the timed steps and of rendering `views` (`bench --profile`), printed; its
+/// chart written into `--out`. Lends the trainer the clock first when `start`.
 #[cfg(feature = "profile")]
-fn start_profile(trainer: &mut Trainer<'_>, profile: bool) {
-    if profile {
-        trainer.set_clock(Some(orbit_nerf_host::profile::clock_ns));
-        trainer.reset_profile();
-    }
-}
-
-#[cfg(not(feature = "profile"))]
-fn start_profile(_: &mut Trainer<'_>, _: bool) {}
-
-/// The timed steps' stage times, then every held-out view fitted and rendered with the
-/// clock running: both tables printed (and, with `--out`, a chart written), as markdown.
-#[cfg(feature = "profile")]
-fn profile_report(
+fn profile(
     trainer: &mut Trainer<'_>,
     executor: &RayonExecutor,
-    timed: &Timed<'_>,
+    (threads, steps_ns): (usize, Option<u64>),
+    (dataset, views): (&orbit_nerf_host::dataset::Dataset, &[usize]),
     args: &BenchArgs,
 ) -> Fallible<String> {
-    use super::FIT_STEPS;
-    use orbit_nerf_host::profile::{Breakdown, write_chart};
-    let profile = trainer.profile();
-    let step = Breakdown {
-        cpu: profile.train_cpu,
-        wall: profile.train_wall,
-        elapsed_ns: timed.steps_ns,
-        count: timed.steps,
+    use orbit_nerf_host::profile::{self, Timed};
+    let Some(steps_ns) = steps_ns else {
+        profile::start(trainer);
+        return Ok(String::new());
     };
-    trainer.reset_profile();
-    let mut mean = vec![0.0f32; trainer.config().embedding_dim as usize];
-    trainer.mean_embedding(&mut mean);
-    let start = Instant::now();
-    for &index in timed.views {
-        let frame = &timed.dataset.frames[index];
-        let (embedding, pose) =
-            train::fit_held_out(trainer, executor, frame, FIT_STEPS, false, &mean)?;
-        let mut out = vec![0.0f32; frame.camera.pixel_count() * 3];
-        trainer.render(executor, &frame.camera, &pose, &embedding, &mut out)?;
-    }
-    let profile = trainer.profile();
-    let view = Breakdown {
-        cpu: profile.render_cpu,
-        wall: profile.render_wall,
-        elapsed_ns: start.elapsed().as_nanos() as u64,
-        count: timed.views.len() as u32,
+    let timed = Timed {
+        threads,
+        steps: args.timed_steps,
+        steps_ns,
+        dataset,
+        views,
     };
-    trainer.set_clock(None);
-    let threads = timed.threads;
-    let fit = if mean.is_empty() {
-        "no appearance embedding to fit".to_string()
-    } else {
-        format!("{FIT_STEPS} embedding-fit steps on the left half")
-    };
-    let text = format!(
-        "### {threads} thread(s): a training step (mean of {} steps)\n\n{}\n\
-         ### {threads} thread(s): a held-out view ({fit}, then the whole view; mean of {} \
-         views)\n\n{}\n",
-        step.count,
-        step.table("step"),
-        view.count,
-        view.table("view"),
+    let name = (args.data.file_name()).map_or_else(
+        || args.data.display().to_string(),
+        |n| n.to_string_lossy().into(),
     );
+    let chart = (args.out.as_ref()).map(|out| out.join(format!("profile_{threads}t.png")));
+    let chart_of = chart.as_deref().map(|path| (path, name.as_str()));
+    let text = profile::report(trainer, executor, &timed, super::FIT_STEPS, chart_of)?;
     println!("\n{text}");
-    if let Some(out) = &args.out {
-        let path = out.join(format!("profile_{threads}t.png"));
-        let title = format!(
-            "{}: where the time goes, {threads} thread(s)",
-            args.data.file_name().map_or_else(
-                || args.data.display().to_string(),
-                |n| n.to_string_lossy().into()
-            )
-        );
-        write_chart(&path, &title, &step, &view)?;
+    if let Some(path) = chart {
         println!("wrote {}", path.display());
     }
     Ok(text)
 }
 
 #[cfg(not(feature = "profile"))]
-fn profile_report(
+fn profile(
     _: &mut Trainer<'_>,
     _: &RayonExecutor,
-    _: &Timed<'_>,
+    _: (usize, Option<u64>),
+    _: (&orbit_nerf_host::dataset::Dataset, &[usize]),
     _: &BenchArgs,
 ) -> Fallible<String> {
-    Err("--profile: this binary was built without the `profile` feature".into())
+    Ok(String::new())
 }

@@ -1,14 +1,13 @@
 //! `orbit-nerf eval`: score held-out views of a dataset with a checkpoint.
 
 use super::{
-    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, RunArgs, evaluate_checkpoint, machine_threads,
-    open_dataset, parse_threads, print_scores,
+    CliResult, DataArgs, FIT_STEPS, MAX_FIT_STEPS, RunArgs, machine_threads, open_dataset,
+    parse_threads, print_scores,
 };
 use clap::Args;
-use orbit_nerf_core::MemoryPlan;
 use orbit_nerf_host::pipeline::DataSettings;
 use orbit_nerf_host::report::{Figures, ModelFigures};
-use orbit_nerf_host::{io, memory, pipeline, train, values};
+use orbit_nerf_host::{io, pipeline, train, values};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -62,12 +61,8 @@ pub fn run(args: &EvalArgs) -> CliResult {
         },
         None => settings,
     };
-    let model = MemoryPlan::new(&pipeline::checkpoint_config(&checkpoint)?);
-    let data = open_dataset(
-        &settings,
-        args.memory_limit,
-        &memory::with_arena(&[], &model),
-    )?;
+    let model = pipeline::checkpoint_parts(&checkpoint)?;
+    let data = open_dataset(&settings, args.memory_limit, &model)?;
     let mut outputs: Vec<PathBuf> = Vec::new();
     if let Some(dir) = &args.renders {
         outputs.extend(train::render_files(dir, &data.test));
@@ -77,7 +72,7 @@ pub fn run(args: &EvalArgs) -> CliResult {
     }
     io::check_new_files(outputs.iter().map(PathBuf::as_path), args.force)?;
     println!("{}", data.scored_at());
-    let scores = evaluate_checkpoint(
+    let scores = pipeline::evaluate_checkpoint(
         &checkpoint,
         (args.threads, args.memory_limit),
         &data,

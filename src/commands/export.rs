@@ -1,13 +1,12 @@
 //! `orbit-nerf export`: the trained field's geometry as files other tools read: the surface
 //! of its density as a coloured mesh (PLY or OBJ), or as a coloured point cloud (PLY).
 
-use super::{CliResult, Fallible, machine_threads, parse_threads};
+use super::{CliResult, machine_threads, parse_threads};
 use clap::{Args, Subcommand};
 use orbit_nerf_core::glam::Vec3;
-use orbit_nerf_host::geometry::{self, Mesh, SurfaceOptions, files};
-use orbit_nerf_host::train::RayonExecutor;
-use orbit_nerf_host::{memory, pipeline, values};
-use std::path::{Path, PathBuf};
+use orbit_nerf_host::geometry::{self, SurfaceOptions, files};
+use orbit_nerf_host::{pipeline, values};
+use std::path::PathBuf;
 
 /// Side of the --preview picture in pixels.
 const PREVIEW_SIZE: u32 = 512;
@@ -101,29 +100,6 @@ fn parse_direction(text: &str) -> Result<[f32; 3], String> {
     }
 }
 
-/// The file formats, by the extension of the output.
-#[derive(Clone, Copy, PartialEq)]
-enum Format {
-    Ply,
-    Obj,
-}
-
-fn format_of(out: &Path, points: bool) -> Result<Format, String> {
-    let extension = out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    match extension.as_deref() {
-        Some("ply") => Ok(Format::Ply),
-        Some("obj") if !points => Ok(Format::Obj),
-        _ => Err(format!(
-            "{}: --out must end in {}",
-            out.display(),
-            if points { ".ply" } else { ".ply or .obj" }
-        )),
-    }
-}
-
 pub fn run(command: &ExportCommand) -> CliResult {
     let (args, points) = match command {
         ExportCommand::Mesh(args) => (args, false),
@@ -146,45 +122,20 @@ pub fn run(command: &ExportCommand) -> CliResult {
         }
     };
     let (checkpoint, out) = (&checkpoint, &out);
-    let format = format_of(out, points)?;
-    for file in std::iter::once(out).chain(&args.preview) {
-        if file.exists() && !args.force {
-            return Err(format!("{}: already exists; --force replaces it", file.display()).into());
-        }
-    }
+    let format = files::MeshFormat::of(out, points)?;
+    let outputs = std::iter::once(out).chain(&args.preview);
+    orbit_nerf_host::io::check_new_files(outputs.map(PathBuf::as_path), args.force)?;
     if let Some(parent) = out.parent() {
         orbit_nerf_host::io::check_output_folder(parent)?;
     }
-    let executor = RayonExecutor::new(args.threads)?;
     let options = SurfaceOptions {
         resolution: args.resolution,
         threshold: args.threshold,
     };
-    // The model and the grid are checked together before either is allocated.
-    let grid = geometry::extract::grid_parts(&pipeline::checkpoint_config(checkpoint)?, &options);
-    let mesh = pipeline::with_checkpoint(
-        checkpoint,
-        args.memory_limit,
-        &grid,
-        |trainer| -> Fallible<_> {
-            let mut embedding = vec![0.0f32; trainer.config().embedding_dim as usize];
-            trainer.mean_embedding(&mut embedding);
-            println!(
-                "surface at density {:.4} on a grid of {} samples along the longest side",
-                geometry::extract::threshold(trainer, &options),
-                options.resolution
-            );
-            Ok(geometry::extract_surface(
-                trainer,
-                &executor,
-                &embedding,
-                &options,
-                checkpoint,
-                memory::limit_or_default(args.memory_limit),
-            )?)
-        },
-    )?;
-    write(out, &mesh, format, points)?;
+    let say = &mut |line: String| println!("{line}");
+    let work = (args.threads, args.memory_limit);
+    let mesh = pipeline::extract_surface(checkpoint, &options, work, say)?;
+    format.write(out, &mesh, points)?;
     if let Some(scene) = &args.chamfer_against {
         let truth = orbit_nerf_host::ablation_report::true_surface(scene)?;
         let samples = geometry::chamfer::DEFAULT_SAMPLES;
@@ -216,13 +167,5 @@ pub fn run(command: &ExportCommand) -> CliResult {
         },
         out.display()
     );
-    Ok(())
-}
-
-fn write(out: &Path, mesh: &Mesh, format: Format, points: bool) -> CliResult {
-    match format {
-        Format::Ply => files::write_ply(out, mesh, !points)?,
-        Format::Obj => files::write_obj(out, mesh)?,
-    }
     Ok(())
 }

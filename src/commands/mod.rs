@@ -19,10 +19,13 @@ use indicatif::ProgressStyle;
 use orbit_nerf_core::Config;
 use orbit_nerf_host::dataset::Dataset;
 use orbit_nerf_host::memory::Part;
-use orbit_nerf_host::pipeline::{self, ChosenConfig, DataChoice, DataSettings, SplitData};
-use orbit_nerf_host::report::{ViewMetrics, mean_metrics};
+use orbit_nerf_host::pipeline::{
+    self, ChosenConfig, DataChoice, DataSettings, Overrides, SplitData,
+};
+use orbit_nerf_host::progress;
+use orbit_nerf_host::report::ViewMetrics;
 use orbit_nerf_host::scene_box;
-use orbit_nerf_host::train::{RayonExecutor, ViewScore, evaluate_at};
+use orbit_nerf_host::train::ViewScore;
 use orbit_nerf_host::{presets, values};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -104,8 +107,8 @@ struct ModelArgs {
     /// Training steps, 1 to 100 million (overrides the config).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=MAX_STEPS))]
     steps: Option<u32>,
-    /// Random seed (overrides the config).
-    #[arg(long)]
+    /// Random seed, 0 to 2^63-1 (overrides the config; config files hold it as a TOML integer).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=MAX_SEED))]
     seed: Option<u64>,
     /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
     #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
@@ -178,10 +181,9 @@ fn choose_box(
     config: Option<&Path>,
     train_idx: &[usize],
 ) -> CliResult {
-    let stated = pipeline::stated_box(flag, config)?;
     println!(
         "{}",
-        scene_box::choose_scene_box(dataset, stated, train_idx)?
+        pipeline::choose_box(dataset, flag, config, train_idx)?
     );
     Ok(())
 }
@@ -199,6 +201,8 @@ fn stop_on_signal() -> CliResult {
 
 /// Most training steps a flag accepts.
 const MAX_STEPS: i64 = 100_000_000;
+/// Largest seed a flag accepts: config and scene files hold seeds as TOML integers (i64).
+const MAX_SEED: u64 = i64::MAX as u64;
 /// The machine's cores: every command's default worker threads.
 fn machine_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get().min(MAX_THREADS))
@@ -236,113 +240,28 @@ fn open_dataset(
 
 /// The model config of a run on `data`: the preset (`--preset`, else the one for the data's
 /// format, told from the folder's layout before the data is read), a `--config` file's fields,
-/// then the flags. Prints which preset and why.
+/// then the flags.
 fn model_config(model: &ModelArgs, data: &Path) -> Fallible<ChosenConfig> {
     let mut chosen =
         pipeline::choose_config(model.preset.as_deref(), data, model.config.as_deref())?;
-    let config = &mut chosen.config;
-    if let Some(steps) = model.steps {
-        config.steps = steps;
-        config.warmup_steps = config.warmup_steps.min(steps);
-    }
-    if let Some(seed) = model.seed {
-        config.seed = seed;
-    }
-    if let Some(dim) = model.embedding_dim {
-        config.embedding_dim = dim;
-    }
-    if let Some(on) = model.pose_correction {
-        config.pose_correction = on;
-    }
+    let overrides = Overrides {
+        steps: model.steps,
+        seed: model.seed,
+        embedding_dim: model.embedding_dim,
+        pose_correction: model.pose_correction,
+    };
+    overrides.apply(&mut chosen.config);
     Ok(chosen)
 }
 
-/// The held-out scores, one line per view and the mean (metrics as `report::score_view`
-/// defines them), and the mean's metrics.
+/// Print the held-out scores, one line per view and the mean; returns the mean's metrics.
 fn print_scores(scores: &[ViewScore]) -> ViewMetrics {
-    println!(
-        "{:>6}  {:>8}  {:>8}  {:>8}  {:>6}  {:>6}  {:>11}  view",
-        "index", "PSNR dB", "right dB", "fg dB", "SSIM", "JNB", "samples/ray"
-    );
-    for s in scores {
-        let m = &s.metrics;
-        println!(
-            "{:>6}  {:>8.2}  {:>8.2}  {:>8.2}  {:>6.4}  {:>6.3}  {:>11.1}  {}",
-            s.index,
-            m.psnr_full,
-            m.psnr_right,
-            m.psnr_foreground,
-            m.ssim_full,
-            m.jnb_full,
-            s.samples_per_ray,
-            s.name
-        );
-    }
-    let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
-    let mean = mean_metrics(&per_view);
-    println!(
-        "mean PSNR over {} held-out views: {:.2} dB",
-        scores.len(),
-        mean.psnr_full
-    );
-    println!(
-        "mean right-half PSNR {:.2} dB, foreground PSNR {:.2} dB (right half {:.2} dB), SSIM {:.4}, JNB {:.3} (blur per edge), CPBD {:.3}",
-        mean.psnr_right,
-        mean.psnr_foreground,
-        mean.psnr_foreground_right,
-        mean.ssim_full,
-        mean.jnb_full,
-        mean.cpbd_full
-    );
+    let (text, mean) = progress::scores_table(scores);
+    println!("{text}");
     mean
-}
-
-/// Score `views` of `data` with the checkpoint at `path` (restored with its own config), at
-/// their exact poses when the data has them, fitting each view's embedding (and with
-/// `align_poses` its pose correction) for `fit_steps`; renders go to `renders` when given.
-/// The model, the data and the renders are checked against `memory_limit` together first.
-fn evaluate_checkpoint(
-    path: &Path,
-    (threads, memory_limit): (usize, Option<u64>),
-    data: &SplitData,
-    views: &[usize],
-    fit: (u32, bool),
-    renders: Option<&Path>,
-) -> Fallible<Vec<ViewScore>> {
-    let executor = RayonExecutor::new(threads)?;
-    let resident = data.resident_parts();
-    pipeline::with_checkpoint(path, memory_limit, &resident, |trainer| -> Fallible<_> {
-        Ok(evaluate_at(
-            trainer,
-            &executor,
-            &data.dataset,
-            views,
-            data.truth.as_deref(),
-            fit,
-            renders,
-        )?)
-    })
 }
 
 /// The style of every command's progress bars: `template` in indicatif's syntax.
 fn bar_style(template: &str) -> Fallible<ProgressStyle> {
     Ok(ProgressStyle::with_template(template)?.progress_chars("=> "))
-}
-
-/// The figure shown while training: the PSNR of an exponential average of the training
-/// batches' loss (skipped steps left out), in dB. It is labelled "train-loss PSNR": it is not
-/// the held-out PSNR, which only `report::score_view` defines.
-#[derive(Default)]
-struct RunningPsnr(Option<f64>);
-
-impl RunningPsnr {
-    fn add(&mut self, mse: f32) {
-        let mse = mse as f64;
-        self.0 = Some(self.0.map_or(mse, |r| 0.95 * r + 0.05 * mse));
-    }
-
-    /// 0 before the first step.
-    fn db(&self) -> f64 {
-        self.0.map_or(0.0, |m| -10.0 * m.max(1e-12).log10())
-    }
 }

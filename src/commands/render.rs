@@ -2,17 +2,14 @@
 //! views (an orbit around the target, or a path file) to PNG frames and an animated GIF.
 
 use super::{
-    CliResult, DataArgs, FIT_STEPS, Fallible, RunArgs, evaluate_checkpoint, machine_threads,
-    open_dataset, parse_threads,
+    CliResult, DataArgs, FIT_STEPS, RunArgs, machine_threads, open_dataset, parse_threads,
 };
 use clap::Args;
-use orbit_nerf_core::Pose;
-use orbit_nerf_core::glam::Vec3;
-use orbit_nerf_host::orbit::{self, Surroundings};
-use orbit_nerf_host::pipeline::{self, SplitData};
-use orbit_nerf_host::train::{self, RayonExecutor, to_rgb8};
+use orbit_nerf_host::orbit::{self, CameraPath};
+use orbit_nerf_host::pipeline;
+use orbit_nerf_host::train::{self, RayonExecutor};
 use orbit_nerf_host::{io, values};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct RenderArgs {
@@ -96,7 +93,7 @@ pub fn run(args: &RenderArgs) -> CliResult {
     };
     let files = train::render_files(out, &views);
     io::check_new_files(files.iter().map(PathBuf::as_path), args.force)?;
-    let scores = evaluate_checkpoint(
+    let scores = pipeline::evaluate_checkpoint(
         &checkpoint,
         (args.threads, None),
         &data,
@@ -115,128 +112,40 @@ pub fn run(args: &RenderArgs) -> CliResult {
     Ok(())
 }
 
-/// The files a path of `count` views writes into `out`.
-fn outputs(out: &Path, count: usize) -> Vec<PathBuf> {
-    let mut files: Vec<PathBuf> = (0..count)
-        .map(|k| out.join(format!("orbit_{k:04}.png")))
-        .collect();
-    files.push(out.join("orbit.gif"));
-    files.push(out.join("orbit.mp4"));
-    files
-}
-
 /// Render an orbit or a path file's cameras with the mean training embedding.
 fn new_views(args: &RenderArgs) -> CliResult {
-    let out = &args.out();
-    io::check_output_folder(out)?;
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
-    let SplitData {
-        dataset,
-        train: train_idx,
-        ..
-    } = open_dataset(&settings, None, &[])?;
-    let camera = dataset.frames[0].camera;
-    let training: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
-    let executor = RayonExecutor::new(args.threads)?;
-    pipeline::with_checkpoint(&checkpoint, None, &[], |trainer| -> Fallible<()> {
-        let c = trainer.config();
-        let centre = (Vec3::from_array(c.aabb_min) + Vec3::from_array(c.aabb_max)) * 0.5;
-        let around = orbit::surroundings(&training, centre).ok_or_else(|| {
-            format!(
-                "{}: the training cameras give no orbit (none, or all at the box centre)",
-                dataset.source.display()
-            )
-        })?;
-        let poses = camera_path(args, &around)?;
-        let files = outputs(out, poses.len());
-        if let Some(existing) = files.iter().find(|f| f.exists()).filter(|_| !args.force) {
-            return Err(format!(
-                "{}: already exists; --force replaces it",
-                existing.display()
-            )
-            .into());
-        }
-        let mut embedding = vec![0.0f32; c.embedding_dim as usize];
-        trainer.mean_embedding(&mut embedding);
-        let (w, h) = (camera.width as u32, camera.height as u32);
-        let mut frames = Vec::with_capacity(poses.len());
-        let mut image = vec![0.0f32; camera.pixel_count() * 3];
-        for (pose, file) in poses.iter().zip(&files) {
-            trainer.render(&executor, &camera, pose, &embedding, &mut image)?;
-            if image.iter().any(|v| !v.is_finite()) {
-                return Err(format!(
-                    "{}: the render of {} holds non-finite pixels: the checkpoint is broken",
-                    checkpoint.display(),
-                    file.display()
-                )
-                .into());
-            }
-            let rgb = to_rgb8(&image);
-            io::write_png(file, w, h, 3, &rgb)?;
-            frames.push(rgb);
-        }
-        let gif = &files[poses.len()];
-        orbit::write_gif(gif, w, h, &frames, args.frame_ms)?;
-        println!(
-            "{} views of {w}x{h} px at {:.3} from the box centre -> {}",
-            poses.len(),
-            around.distance,
-            gif.display()
-        );
-        encode_mp4(out, poses.len(), args.frame_ms, &files[poses.len() + 1])
-    })
-}
-
-/// The cameras to render: the orbit, or the path file's.
-fn camera_path(args: &RenderArgs, around: &Surroundings) -> Fallible<Vec<Pose>> {
-    match (&args.path, args.orbit) {
-        (Some(path), _) => Ok(orbit::read_path(path, around.up)?),
-        (None, Some(count)) => Ok(orbit::orbit(
-            around,
-            count,
-            args.elevation
-                .unwrap_or(around.elevation_deg.clamp(-89.0, 89.0)),
-        )),
-        (None, None) => Err("neither --orbit nor --path".into()),
-    }
-}
-
-/// `orbit.mp4` from the frames with ffmpeg when it is on the PATH (written to a temporary
-/// name and renamed); nothing without it.
-fn encode_mp4(out: &Path, frames: usize, frame_ms: u32, mp4: &Path) -> CliResult {
-    let Ok(status) = std::process::Command::new("ffmpeg")
-        .arg("-version")
-        .output()
-    else {
-        println!("ffmpeg is not on the PATH: no MP4");
-        return Ok(());
+    let data = open_dataset(&settings, None, &[])?;
+    let path = match (&args.path, args.orbit) {
+        (Some(file), _) => CameraPath::File(file.clone()),
+        (None, count) => CameraPath::Orbit {
+            count: count.unwrap_or(0),
+            elevation_deg: args.elevation,
+        },
     };
-    if !status.status.success() || frames == 0 {
-        return Ok(());
+    let executor = RayonExecutor::new(args.threads)?;
+    let done = pipeline::with_checkpoint(&checkpoint, None, &[], |trainer| {
+        let what = (checkpoint.as_path(), &data);
+        orbit::render_path(
+            trainer,
+            &executor,
+            what,
+            &path,
+            &args.out(),
+            (args.frame_ms, args.force),
+        )
+    })?;
+    println!(
+        "{} views of {}x{} px at {:.3} from the box centre -> {}",
+        done.count,
+        done.width,
+        done.height,
+        done.distance,
+        done.gif.display()
+    );
+    match done.mp4 {
+        Some(mp4) => println!("-> {}", mp4.display()),
+        None => println!("ffmpeg is not on the PATH: no MP4"),
     }
-    let tmp = out.join(format!("orbit.tmp{}.mp4", std::process::id()));
-    let result = std::process::Command::new("ffmpeg")
-        .args(["-loglevel", "error", "-y", "-framerate"])
-        .arg(format!("{}/{frame_ms}", 1000))
-        .arg("-i")
-        .arg(out.join("orbit_%04d.png"))
-        .args([
-            "-vf",
-            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-            "-pix_fmt",
-            "yuv420p",
-        ])
-        .arg(&tmp)
-        .status();
-    match result {
-        Ok(s) if s.success() => {
-            std::fs::rename(&tmp, mp4).map_err(|e| format!("{}: {e}", mp4.display()))?;
-            println!("-> {}", mp4.display());
-            Ok(())
-        }
-        _ => {
-            let _ = std::fs::remove_file(&tmp);
-            Err(format!("ffmpeg failed to write {}", mp4.display()).into())
-        }
-    }
+    Ok(())
 }

@@ -23,8 +23,9 @@ pub struct SimulateArgs {
     /// scene's `size`).
     #[arg(long, value_parser = clap::value_parser!(u16).range(8..))]
     pub size: Option<u16>,
-    /// Random seed (overrides the scene's `seed`).
-    #[arg(long)]
+    /// Random seed, 0 to 2^63-1 (overrides the scene's `seed`; scene files hold it as a TOML
+    /// integer).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=i64::MAX as u64))]
     pub seed: Option<u64>,
     /// Print the time spent in each stage and effect, summed over frames.
     #[arg(long)]

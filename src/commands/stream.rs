@@ -3,23 +3,20 @@
 //! report the anytime quality, checkpoint, and resume after Ctrl-C or SIGTERM.
 
 use super::{
-    FIT_STEPS, Fallible, STOP, SceneBox, bar_style, config_for_data, parse_scene_box,
-    preset_config, preset_parser, stop_on_signal,
+    FIT_STEPS, Fallible, STOP, SceneBox, bar_style, machine_threads, parse_scene_box,
+    parse_threads, preset_parser, stop_on_signal,
 };
-use indicatif::ProgressBar;
-use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
-use orbit_nerf_host::report::{Figures, ModelFigures, TrainingFigures, ViewMetrics};
-use orbit_nerf_host::scene_box::box_text;
+use indicatif::{ProgressBar, ProgressStyle};
+use orbit_nerf_core::Replacement;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
-    self, Control, DatasetSource, Event, Fate, FrameSource, MaskedSource, Outcome, SimulatorSource,
-    StreamSettings, StreamState, WatchOptions, WatchedFolder,
+    self, DatasetSource, Event, FrameSource, MaskedSource, ModelChoice, SimulatorSource,
+    SourceKind, Stage, StreamEnd, StreamObserver, StreamRequest, StreamSettings, WatchOptions,
+    WatchedFolder,
 };
-use orbit_nerf_host::train::{self, RayonExecutor};
-use orbit_nerf_host::{memory, presets, values};
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use orbit_nerf_host::values;
+use std::path::PathBuf;
+use std::time::Duration;
 
 #[derive(clap::Args, Debug, Clone)]
 #[command(group(clap::ArgGroup::new("source").required(true).args(["scene", "data", "watch"])))]
@@ -82,9 +79,11 @@ pub struct StreamArgs {
     /// End the stream after this many arrivals.
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_frames: Option<u64>,
-    /// Stop (and checkpoint) after this many arrivals, as Ctrl-C would; resume with --resume.
-    #[arg(long)]
-    pub stop_after: Option<u64>,
+    /// Stop (and checkpoint) once the stream has taken this many training steps in all (a
+    /// resumed stream's count goes on), as Ctrl-C would, possibly within a frame's steps;
+    /// continue with --resume.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub stop_after: Option<u32>,
     /// The scene box, xmin,ymin,zmin,xmax,ymax,zmax (wins over a config file's box and
     /// truth.json's; needed for a SPEED+ folder without truth.json).
     #[arg(long, value_parser = parse_scene_box, allow_hyphen_values = true)]
@@ -112,15 +111,15 @@ pub struct StreamArgs {
     /// in a `[config]` table (a full file works too).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Random seed of the model (overrides the config).
-    #[arg(long)]
+    /// Random seed of the model, 0 to 2^63-1 (overrides the config).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=super::MAX_SEED))]
     pub seed: Option<u64>,
     /// Largest memory the model's arena may take (e.g. 8G, 512M); default: 80 % of the
     /// machine's available memory. Checked before anything is allocated.
     #[arg(long, value_parser = values::byte_size)]
     pub memory_limit: Option<u64>,
-    /// Worker threads, 1 to 1024 (results do not depend on it).
-    #[arg(long, default_value_t = 2, value_parser = |text: &str| values::count_in(text, 1..=1024))]
+    /// Worker threads, 1 to 1024 (results do not depend on it) [default: the machine's cores].
+    #[arg(long, default_value_t = machine_threads(), hide_default_value = true, value_parser = parse_threads)]
     pub threads: usize,
     /// Output folder: checkpoint.onrf (and the anytime points' model snapshots in
     /// checkpoint.snapshots/), anytime.csv, anytime.png, anytime_time.png, summary.md,
@@ -154,381 +153,149 @@ pub fn run(args: &StreamArgs) -> Fallible<()> {
         scene.spec.frames = args.frames;
         scene.spec.set_width(args.size);
         let mut source = SimulatorSource::new(&scene)?;
-        stream_from(args, &mut source)
+        stream_from(args, &SourceKind::Simulator, &mut source)
     } else if let Some(dir) = &args.data {
-        stream_from(args, &mut DatasetSource::open(dir, max_side, args.rate)?)
+        let mut source = DatasetSource::open(dir, max_side, args.rate)?;
+        stream_from(args, &SourceKind::DatasetFolder(dir.clone()), &mut source)
     } else if let Some(dir) = &args.watch {
         let options = WatchOptions {
             poll: Duration::from_millis(args.poll_ms),
             grace: Duration::from_millis(args.grace_ms),
             idle_timeout: args.idle_timeout.0,
         };
-        stream_from(args, &mut WatchedFolder::open(dir, max_side, options)?)
+        let mut source = WatchedFolder::open(dir, max_side, options)?;
+        stream_from(args, &SourceKind::WatchedFolder, &mut source)
     } else {
         Err("give a source: --scene, --data or --watch".into())
     }
 }
 
-/// The stream's model config: `--preset` (else the preset for the source), a `--config`
-/// file's fields, then `--seed`.
-fn model_config(args: &StreamArgs) -> Fallible<Config> {
-    let (preset, file) = (args.preset.as_deref(), args.config.as_deref());
-    let mut config = match (&args.data, &args.scene) {
-        (Some(dir), _) => config_for_data(preset, dir, file)?,
-        (None, Some(_)) => preset_config(preset, presets::SPACECRAFT, "a simulated scene", file)?,
-        (None, None) => preset_config(
-            preset,
-            presets::SPACECRAFT,
-            "a watched folder of SPEED+ frames",
-            file,
-        )?,
-    };
-    if let Some(seed) = args.seed {
-        config.seed = seed;
-    }
-    Ok(config)
-}
-
-/// Stream from `source`, with its masks applied unless `--no-masks`.
-fn stream_from(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
-    if args.no_masks {
-        stream_over(args, source)
-    } else {
-        stream_over(args, &mut MaskedSource::new(source))
-    }
-}
-
-fn stream_over(args: &StreamArgs, source: &mut dyn FrameSource) -> Fallible<()> {
-    let checkpoint_path = args.out.join("checkpoint.onrf");
-    let (config, mut state, resumed) = if args.resume {
-        let (config, state) = stream::resume(&checkpoint_path, source)?;
-        (config, state, true)
-    } else {
-        orbit_nerf_host::io::check_fresh_checkpoint(&checkpoint_path, args.force, "stream")?;
-        let mut info = source.info().clone();
-        info.frames = info.frames.or(args.max_frames);
-        let base = model_config(args)?;
-        let config_box = match &args.config {
-            Some(path) => train::config_scene_box(path)?
-                .map(|b| (b, format!("the config file {}", path.display()))),
-            None => None,
-        };
-        // The rule of `choose_box`, less finding: a stream sees one frame at a time.
-        if let Some((stated, by)) = args
-            .scene_box
-            .map(|b| (b, "--scene-box".to_owned()))
-            .or(config_box)
-        {
-            info.scene_box = Some(stated);
-            println!("scene box {}, given by {by}", box_text(stated.0, stated.1));
-        } else if let Some(known) = info.scene_box {
-            println!(
-                "scene box {}, from the source (truth.json or the format)",
-                box_text(known.0, known.1)
-            );
-        }
-        let config = stream::stream_config(
-            &base,
-            &info,
-            args.store,
-            args.policy.into(),
-            args.steps_per_frame,
-        )?;
-        let settings = StreamSettings {
+/// The library's request for the flags.
+fn request(args: &StreamArgs) -> StreamRequest {
+    StreamRequest {
+        out: args.out.clone(),
+        store: args.store,
+        replacement: args.policy.into(),
+        settings: StreamSettings {
             steps_per_frame: args.steps_per_frame,
             holdout_every: args.holdout,
             eval_every: args.eval_every,
             checkpoint_every: args.checkpoint_every,
             fit_steps: args.fit_steps,
-        };
-        (
-            config,
-            StreamState::new(settings, config.max_frames as usize, source.info()),
-            false,
-        )
-    };
-    let executor = RayonExecutor::new(args.threads)?;
-    let plan = MemoryPlan::new(&config);
-    memory::check_arena(
-        Path::new(&format!("the model for {}", source.info().name)),
-        &plan,
-        memory::limit_or_default(args.memory_limit),
-    )?;
-    let mut arena = vec![0u8; plan.total];
-    let mut trainer = Trainer::new(config, &mut arena).map_err(|e| format!("config: {e}"))?;
-    if resumed {
-        stream::restore(&checkpoint_path, &mut trainer)?;
-        println!(
-            "resuming {} at arrival {} ({} steps done)",
-            checkpoint_path.display(),
-            state.position,
-            trainer.state().step
-        );
-    }
-    println!(
-        "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
-        source.info().name,
-        config.max_frames,
-        config.replacement,
-        state.settings.steps_per_frame,
-        args.threads,
-        plan.total as f64 / (1 << 20) as f64
-    );
-    let bar = match source.info().frames.or(args.max_frames) {
-        Some(frames) => ProgressBar::new(frames),
-        None => ProgressBar::no_length(),
-    }
-    .with_style(bar_style(
-        "stream [{bar:30}] {pos}/{len} frames {per_sec} {msg}",
-    )?);
-    bar.set_position(state.position);
-    let start = Instant::now();
-    let control = Control {
-        stop: &STOP,
+        },
+        model: ModelChoice {
+            preset: args.preset.clone(),
+            config_file: args.config.clone(),
+            seed: args.seed,
+        },
+        scene_box: args.scene_box,
         stop_after: args.stop_after,
         end_after: args.max_frames,
-        checkpoint: &checkpoint_path,
-    };
-    let mut last_quality = String::from("no held-out score yet");
-    let outcome = stream::run(
-        &mut trainer,
-        &executor,
-        source,
-        &mut state,
-        &control,
-        &mut |event| match event {
-            Event::Frame { fate, mse, .. } => {
-                let fate = match fate {
-                    Fate::Stored { slot } => format!("-> slot {slot}"),
-                    Fate::Rejected => "rejected".into(),
-                    Fate::HeldOut => "held out".into(),
-                };
-                bar.set_message(format!("{fate:>12}, loss {mse:.5}, {last_quality}"));
-                bar.inc(1);
-            }
-            Event::Bad(bad) => {
-                // `suspend` prints also when the bar is hidden (output not a terminal).
-                bar.suspend(|| println!("bad frame {}: {}", bad.position, bad.message));
-                bar.inc(1);
-            }
-            Event::Anytime(point) => {
-                // Before the first held-out view arrives there is nothing to score.
-                let quality = if point.held_out_views == 0 {
-                    "no held-out view yet".to_string()
-                } else {
-                    last_quality = format!("held-out so far {:.2} dB", point.psnr);
-                    format!(
-                        "PSNR {:.2} dB, SSIM {:.4} on the {} held-out views seen so far",
-                        point.psnr, point.ssim, point.held_out_views
-                    )
-                };
-                bar.suspend(|| println!(
-                    "{:>4} frames seen, {:>3} held, {:>5} steps: {quality}, {:.2} s/frame, RSS {:.1} MiB",
-                    point.frames_seen,
-                    point.frames_held,
-                    point.steps,
-                    point.seconds_per_frame,
-                    point.rss_mib
-                ));
-            }
-            Event::Checkpoint(_) => {}
-        },
-    )?;
-    bar.finish_and_clear();
-    let seconds = start.elapsed().as_secs_f64();
-    if outcome == Outcome::Stopped {
-        stream::write_curve(&args.out, &state.curve, None, None)?;
-        println!(
-            "stopped after {} arrivals; checkpoint {} (continue with --resume)",
-            state.position,
-            checkpoint_path.display()
-        );
-        return Ok(());
+        compare_offline: args.compare_offline,
+        memory_limit: args.memory_limit,
+        threads: args.threads,
+        resume: args.resume,
+        replace: args.force,
     }
-    let fixed = fixed_set(args, source, &state, &config, &checkpoint_path, &executor)?;
-    let offline = if args.compare_offline {
-        Some(offline(
-            source,
-            &state,
-            &config,
-            trainer.state().step,
-            &executor,
-        )?)
-    } else {
-        None
+}
+
+/// Stream from `source` (with its masks applied unless `--no-masks`) and print the outcome.
+fn stream_from(args: &StreamArgs, kind: &SourceKind, source: &mut dyn FrameSource) -> Fallible<()> {
+    let request = request(args);
+    let mut printer = Printer {
+        bar: ProgressBar::hidden(),
+        styles: [
+            bar_style("stream [{bar:30}] {pos}/{len} frames {per_sec} {msg}")?,
+            bar_style(
+                "scoring the snapshots on all held-out views [{bar:30}] {pos}/{len} {per_sec} eta {eta}",
+            )?,
+            bar_style("offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}")?,
+        ],
+        last_quality: String::from("no held-out score yet"),
     };
-    stream::write_curve(
-        &args.out,
-        &state.curve,
-        Some(&fixed),
-        offline.as_ref().map(|(points, _)| points.as_slice()),
-    )?;
-    // The last point's seconds are the offline training time; `seconds` adds its scoring.
-    let offline = offline.and_then(|(points, seconds)| {
-        let last = points.last()?;
-        Some((last.metrics, last.seconds, seconds))
-    });
-    let summary = summary(&state, &trainer, seconds, offline.as_ref());
-    orbit_nerf_host::io::write_atomic(&args.out.join("summary.md"), summary.as_bytes())?;
-    figures(&state, &trainer, seconds, offline.as_ref()).write(&args.out)?;
-    print!("{summary}");
-    println!(
-        "checkpoint (snapshots beside it), anytime.csv, anytime.png, anytime_time.png, summary.md and metrics.json in {}",
-        args.out.display()
-    );
+    let end = if args.no_masks {
+        request.run(kind, source, &STOP, &mut printer)
+    } else {
+        request.run(kind, &mut MaskedSource::new(source), &STOP, &mut printer)
+    };
+    printer.bar.finish_and_clear();
+    match end? {
+        StreamEnd::Stopped { position, step } => println!(
+            "stopped after {position} arrivals ({step} training steps); checkpoint {} (continue with --resume)",
+            request.checkpoint_path().display()
+        ),
+        StreamEnd::Finished(finished) => {
+            print!("{}", finished.summary);
+            println!(
+                "checkpoint (snapshots beside it), anytime.csv, anytime.png, anytime_time.png, summary.md and metrics.json in {}",
+                args.out.display()
+            );
+        }
+    }
     Ok(())
 }
 
-/// Score every anytime point's snapshot on all the stream's held-out views, with a progress
-/// bar.
-fn fixed_set(
-    args: &StreamArgs,
-    source: &dyn FrameSource,
-    state: &StreamState,
-    config: &Config,
-    checkpoint_path: &Path,
-    executor: &RayonExecutor,
-) -> Fallible<Vec<stream::FixedSetPoint>> {
-    let bar = ProgressBar::new(state.curve.len() as u64).with_style(bar_style(
-        "scoring the snapshots on all held-out views [{bar:30}] {pos}/{len} {per_sec} eta {eta}",
-    )?);
-    let points = stream::fixed_set_curve(
-        checkpoint_path,
-        source,
-        state,
-        config,
-        executor,
-        args.memory_limit,
-        &mut |_| bar.inc(1),
-    )?;
-    bar.finish_and_clear();
-    Ok(points)
+/// Prints the stream's notes and events and draws its progress bars: the arrivals, then the
+/// scoring of the snapshots and the offline reference's training.
+struct Printer {
+    /// The bar of the stage under way (hidden before the stream starts).
+    bar: ProgressBar,
+    /// Styles of the bars of the stream, the scoring and the offline reference.
+    styles: [ProgressStyle; 3],
+    /// The last held-out score, shown beside the stream's bar.
+    last_quality: String,
 }
 
-/// Train the offline reference, scoring it at the step counts of the stream's points, with a
-/// progress bar. Returns its points and its wall time (training and scoring).
-fn offline(
-    source: &dyn FrameSource,
-    state: &StreamState,
-    config: &Config,
-    steps: u32,
-    executor: &RayonExecutor,
-) -> Fallible<(Vec<stream::OfflinePoint>, f64)> {
-    let bar = ProgressBar::new(steps as u64).with_style(bar_style(
-        "offline [{bar:30}] {pos}/{len} steps {per_sec} eta {eta}",
-    )?);
-    let start = Instant::now();
-    let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
-    let points = stream::offline_reference(
-        source,
-        state,
-        config,
-        steps,
-        &at_steps,
-        executor,
-        &mut |_| bar.inc(1),
-    )?;
-    bar.finish_and_clear();
-    Ok((points, start.elapsed().as_secs_f64()))
+impl Printer {
+    /// Clear the bar shown and show `bar` instead.
+    fn replace_bar(&mut self, bar: ProgressBar) {
+        self.bar.finish_and_clear();
+        self.bar = bar;
+    }
 }
 
-/// The summary's models for `metrics.json`: the streamed model at its last held-out score,
-/// and the offline reference when there is one (no per-view figures: a stream keeps means).
-fn figures(
-    state: &StreamState,
-    trainer: &Trainer<'_>,
-    seconds: f64,
-    offline: Option<&(ViewMetrics, f64, f64)>,
-) -> Figures {
-    let mut models = Vec::new();
-    if let Some(last) = state.curve.last() {
-        models.push(ModelFigures {
-            name: "streamed".into(),
-            mean: last.metrics(),
-            views: Vec::new(),
-            training: Some(TrainingFigures {
-                steps: trainer.state().step as u64,
-                steps_skipped: trainer.state().skipped as u64,
-                seconds,
-                // This session's steps (a resumed stream's since it resumed, as `train`'s).
-                samples_per_ray: if state.session.steps > 0 {
-                    state.session.samples_per_ray()
-                } else {
-                    f64::NAN
-                },
-            }),
-            mean_at: None,
-            pose_refinement: None,
-        });
+impl StreamObserver for Printer {
+    fn note(&mut self, note: &str) {
+        println!("{note}");
     }
-    if let Some((metrics, _, _)) = offline {
-        models.push(ModelFigures {
-            name: "offline reference".into(),
-            mean: *metrics,
-            views: Vec::new(),
-            training: None,
-            mean_at: None,
-            pose_refinement: None,
-        });
-    }
-    Figures::new("stream", models)
-}
 
-fn summary(
-    state: &StreamState,
-    trainer: &Trainer<'_>,
-    seconds: f64,
-    offline: Option<&(ViewMetrics, f64, f64)>,
-) -> String {
-    let mut text = String::from("# Stream summary\n\n");
-    let _ = writeln!(
-        text,
-        "- {} arrivals: {} usable ({} held out, {} offered to the store: {} stored, {} turned away), {} bad",
-        state.position,
-        state.usable,
-        state.held_out.len(),
-        state.offered,
-        state.stored,
-        state.rejected,
-        state.bad.len()
-    );
-    let _ = writeln!(
-        text,
-        "- {} frames held at the end, {} training steps, {:.1} s wall time ({:.2} s per arrival)",
-        trainer.frames().len(),
-        trainer.state().step,
-        seconds,
-        seconds / state.position.max(1) as f64
-    );
-    for bad in &state.bad {
-        let _ = writeln!(text, "- bad frame {}: {}", bad.position, bad.message);
+    fn start(&mut self, position: u64, arrivals: Option<u64>) {
+        let bar = arrivals.map_or_else(ProgressBar::no_length, ProgressBar::new);
+        self.replace_bar(bar.with_style(self.styles[0].clone()));
+        self.bar.set_position(position);
     }
-    if let Some(last) = state.curve.last() {
-        let _ = writeln!(
-            text,
-            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views",
-            last.psnr, last.psnr_right, last.psnr_foreground, last.ssim, last.held_out_views
-        );
+
+    fn event(&mut self, event: &Event<'_>) {
+        match event {
+            Event::Frame { fate, mse, .. } => {
+                let quality = &self.last_quality;
+                self.bar
+                    .set_message(format!("{fate:>12}, loss {mse:.5}, {quality}"));
+                self.bar.inc(1);
+            }
+            Event::Bad(bad) => {
+                // `suspend` prints also when the bar is hidden (output not a terminal).
+                self.bar.suspend(|| println!("{bad}"));
+                self.bar.inc(1);
+            }
+            Event::Anytime(point) => {
+                if point.held_out_views > 0 {
+                    self.last_quality = format!("held-out so far {:.2} dB", point.psnr);
+                }
+                self.bar.suspend(|| println!("{point}"));
+            }
+            Event::Checkpoint(_) => {}
+        }
     }
-    if let Some((metrics, training_seconds, offline_seconds)) = offline {
-        let _ = writeln!(
-            text,
-            "- offline reference (all training frames at once, same steps, {training_seconds:.1} s of training, {offline_seconds:.1} s with scoring): held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}",
-            metrics.psnr_full, metrics.psnr_right, metrics.psnr_foreground, metrics.ssim_full
-        );
+
+    fn progress(&mut self, stage: Stage, done: u64, total: u64) {
+        if done == 0 {
+            let style = match stage {
+                Stage::FixedSet => &self.styles[1],
+                Stage::OfflineReference => &self.styles[2],
+            };
+            self.replace_bar(ProgressBar::new(total).with_style(style.clone()));
+        }
+        self.bar.set_position(done);
     }
-    if let (Some(first), Some(last)) = (
-        state
-            .curve
-            .iter()
-            .find(|p| p.frames_seen >= trainer.config().max_frames as u64),
-        state.curve.last(),
-    ) {
-        let _ = writeln!(
-            text,
-            "- resident memory: {:.1} MiB at {} frames seen, {:.1} MiB at {}",
-            first.rss_mib, first.frames_seen, last.rss_mib, last.frames_seen
-        );
-    }
-    text
 }

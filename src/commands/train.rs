@@ -3,18 +3,18 @@
 //! `--resume` to the same bytes as a run that was never stopped.
 
 use super::{
-    CliResult, DataArgs, Fallible, ModelArgs, RunningPsnr, STOP, bar_style, model_config,
-    print_scores, stop_on_signal,
+    CliResult, DataArgs, ModelArgs, STOP, bar_style, model_config, print_scores, stop_on_signal,
 };
 use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::{StepReport, Trainer};
 use orbit_nerf_host::geometry::extract::SurfaceOptions;
 use orbit_nerf_host::pipeline::{
-    self, CHECKPOINT_FILE, Flow, Observer, Outcome, Pipeline, StepTally, TrainOptions,
+    self, CHECKPOINT_FILE, Flow, Observer, Outcome, Pipeline, TrainOptions,
 };
+use orbit_nerf_host::progress::SessionProgress;
 use orbit_nerf_host::{io, memory};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -90,12 +90,17 @@ pub fn run(args: &TrainArgs) -> CliResult {
     if args.dry_run {
         return print_memory_plan(&pipeline);
     }
-    let mut progress = ProgressLines::new(args.resume)?;
+    let mut progress = ProgressLines {
+        bar: ProgressBar::new(0).with_style(bar_style(TRAIN_BAR)?),
+        resumed: args.resume,
+        session: SessionProgress::default(),
+        last_line: None,
+    };
     let outcome = pipeline.train(&args.out, &options, &mut progress)?;
     progress.bar.finish_and_clear();
     match outcome {
         Outcome::Stopped { step } => {
-            print_summary(&progress);
+            println!("{}", progress.session.summary());
             println!(
                 "stopped at step {step} of {}; checkpoint {} (continue with --resume)",
                 pipeline.config.steps,
@@ -103,7 +108,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
             );
         }
         Outcome::Finished(run) => {
-            print_summary(&progress);
+            println!("{}", progress.session.summary());
             if let Some(poses) = &run.pose_refinement {
                 let summary = &poses.summary;
                 println!(
@@ -143,9 +148,7 @@ fn print_memory_plan(pipeline: &Pipeline) -> CliResult {
         println!("  {}: {}", stage.name, memory::describe(&stage.parts));
         println!("    {}", stage.note);
     }
-    for stage in &plan {
-        memory::check_plan(Path::new(&stage.name), &stage.parts, limit)?;
-    }
+    pipeline.check_memory_plan(&plan)?;
     println!("dry run: every stage fits; nothing was trained or written");
     Ok(())
 }
@@ -159,25 +162,8 @@ const PLAIN_PROGRESS_EVERY: Duration = Duration::from_secs(5);
 struct ProgressLines {
     bar: ProgressBar,
     resumed: bool,
-    running: RunningPsnr,
-    tally: StepTally,
-    skipped: u32,
-    started: Instant,
+    session: SessionProgress,
     last_line: Option<Instant>,
-}
-
-impl ProgressLines {
-    fn new(resumed: bool) -> Fallible<ProgressLines> {
-        Ok(ProgressLines {
-            bar: ProgressBar::new(0).with_style(bar_style(TRAIN_BAR)?),
-            resumed,
-            running: RunningPsnr::default(),
-            tally: StepTally::default(),
-            skipped: 0,
-            started: Instant::now(),
-            last_line: None,
-        })
-    }
 }
 
 impl Observer for ProgressLines {
@@ -187,7 +173,7 @@ impl Observer for ProgressLines {
             println!("resuming at step {step} of {}", trainer.config().steps);
         }
         self.bar.set_length((end - step.min(end)) as u64);
-        self.started = Instant::now();
+        self.session.restart_clock();
     }
 
     fn step(
@@ -196,41 +182,17 @@ impl Observer for ProgressLines {
         end: u32,
         report: &StepReport,
     ) -> orbit_nerf_host::Result<Flow> {
-        let tally = &mut self.tally;
-        tally.steps += 1;
-        tally.rays += report.rays as u64;
-        tally.samples += report.samples as u64;
-        tally.marched += report.samples_marched as u64;
-        tally.seconds = self.started.elapsed().as_secs_f64();
-        if report.skipped {
-            self.skipped += 1;
-        } else {
-            self.running.add(report.mse);
-        }
+        self.session.add(report);
         let step = trainer.state().step;
-        if tally.steps % 10 == 1 || step == end {
-            self.bar.set_message(format!(
-                "loss {:.5} train-loss PSNR {:.2} dB {:.1} samples/ray",
-                report.mse,
-                self.running.db(),
-                report.samples as f32 / report.rays.max(1) as f32
-            ));
+        if self.session.tally.steps % 10 == 1 || step == end {
+            self.bar.set_message(self.session.bar_message(report));
         }
         self.bar.inc(1);
         // Without a terminal (logs, CI) the bar is hidden: a plain line says how far it is.
-        if self.bar.is_hidden()
-            && self
-                .last_line
-                .is_none_or(|t| t.elapsed() >= PLAIN_PROGRESS_EVERY)
-        {
+        let due = (self.last_line).is_none_or(|t| t.elapsed() >= PLAIN_PROGRESS_EVERY);
+        if self.bar.is_hidden() && due {
             self.last_line = Some(Instant::now());
-            let per_step = tally.seconds / tally.steps as f64;
-            println!(
-                "step {step}/{end}: loss {:.5}, {:.0} rays/s, ETA {:.0} s",
-                report.mse,
-                tally.rays as f64 / tally.seconds.max(1e-9),
-                per_step * end.saturating_sub(step) as f64
-            );
+            println!("{}", self.session.line(step, end, report));
         }
         Ok(if STOP.load(Ordering::SeqCst) {
             Flow::Stop
@@ -242,23 +204,4 @@ impl Observer for ProgressLines {
     fn stop_flag(&self) -> Option<&AtomicBool> {
         Some(&STOP)
     }
-}
-
-/// Speed, samples per ray and skipped steps of this session's training steps.
-fn print_summary(progress: &ProgressLines) {
-    let s = &progress.tally;
-    if s.steps == 0 {
-        // Stopped within the first step of the session, which was given up.
-        println!("no training step finished in this session");
-        return;
-    }
-    println!(
-        "trained in {:.1} s: {:.0} rays/s, {:.0} samples/s ({:.1} samples/ray after early stop, {:.1} marched), {} steps skipped",
-        s.seconds,
-        s.rays as f64 / s.seconds,
-        s.samples as f64 / s.seconds,
-        s.samples_per_ray(),
-        s.marched as f64 / s.rays.max(1) as f64,
-        progress.skipped
-    );
 }

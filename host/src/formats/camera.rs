@@ -22,11 +22,15 @@ use std::path::Path;
 /// Written in the SPEED+ layout (the metre fields only when the pitch is known).
 #[derive(Clone, Debug, PartialEq)]
 pub struct SpeedCamera {
+    /// Image width in pixels (`Nu`), 1 to 65535.
     pub width: u32,
+    /// Image height in pixels (`Nv`), 1 to 65535.
     pub height: u32,
     /// Pixel pitch in metres (`ppx`, `ppy`), when the file gives it.
     pub pixel_pitch: Option<[f64; 2]>,
+    /// The pinhole matrix `[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`, row-major, in pixels.
     pub camera_matrix: [[f64; 3]; 3],
+    /// OpenCV distortion `[k1, k2, p1, p2, k3]`; all zero means none.
     pub dist_coeffs: [f64; 5],
 }
 
@@ -81,6 +85,21 @@ impl SpeedCamera {
     }
 
     /// [`SpeedCamera::read`] on the text of the file `path` names.
+    ///
+    /// ```
+    /// use orbit_nerf_host::formats::camera::SpeedCamera;
+    /// use std::path::Path;
+    ///
+    /// let text = r#"{"Nu": 640, "Nv": 480,
+    ///     "cameraMatrix": [[800, 0, 320], [0, 800, 240], [0, 0, 1]]}"#;
+    /// let camera = SpeedCamera::parse(Path::new("camera.json"), text).unwrap();
+    /// assert_eq!((camera.pinhole().fx, camera.pinhole().cx), (800.0, 320.0));
+    /// assert!(camera.distortion().is_none());
+    ///
+    /// // A skewed matrix is no pinhole camera.
+    /// let skewed = text.replace("[[800, 0, 320]", "[[800, 5, 320]");
+    /// assert!(SpeedCamera::parse(Path::new("camera.json"), &skewed).is_err());
+    /// ```
     pub fn parse(path: &Path, text: &str) -> Result<SpeedCamera> {
         SpeedCamera::from_json(JsonFile::parse(path, text)?)
     }
@@ -248,6 +267,8 @@ impl SpeedCamera {
         Ok(camera)
     }
 
+    /// Write the camera to `path` (atomically) in the SPEED+ layout: the metre fields `ppx`,
+    /// `ppy`, `fx`, `fy` only when the pixel pitch is known.
     pub fn write(&self, path: &Path) -> Result<()> {
         let k = &self.camera_matrix;
         let metres = |axis: usize| self.pixel_pitch.map(|p| k[axis][axis] * p[axis]);
@@ -279,6 +300,7 @@ impl SpeedCamera {
         }
     }
 
+    /// Whether any distortion coefficient is non-zero.
     pub fn has_distortion(&self) -> bool {
         self.dist_coeffs.iter().any(|&c| c != 0.0)
     }

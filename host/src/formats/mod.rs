@@ -29,6 +29,16 @@ pub enum Format {
 
 impl Format {
     /// The format [`open`] reads `path` (a folder, or a label / transforms file) as.
+    ///
+    /// ```
+    /// use orbit_nerf_host::formats::Format;
+    /// use std::path::Path;
+    ///
+    /// // A file is recognised by its name; a folder by the files in it.
+    /// assert_eq!(Format::of(Path::new("lego/transforms_train.json")), Format::NerfSynthetic);
+    /// assert_eq!(Format::of(Path::new("capture/transforms.json")), Format::Nerfstudio);
+    /// assert_eq!(Format::of(Path::new("shirt/roe1/train.json")), Format::SpeedPlus);
+    /// ```
     pub fn of(path: &Path) -> Format {
         let is =
             |name: &str| path.join(name).is_file() || path.file_name().is_some_and(|n| n == name);

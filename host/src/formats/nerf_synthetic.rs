@@ -8,19 +8,25 @@ use crate::dataset::{Dataset, Frame, SceneBoxOrigin};
 use crate::error::{HostError, Result};
 use std::path::{Path, PathBuf};
 
-/// K-Planes' scene box for NeRF-synthetic scenes: every object fits in [-1.5, 1.5]^3.
+/// Lower corner of K-Planes' scene box for NeRF-synthetic scenes (world units): every object
+/// fits in [-1.5, 1.5]^3.
 pub const NERF_SYNTHETIC_SCENE_MIN: [f32; 3] = [-1.5; 3];
+/// Upper corner of K-Planes' scene box for NeRF-synthetic scenes (world units).
 pub const NERF_SYNTHETIC_SCENE_MAX: [f32; 3] = [1.5; 3];
 
 /// The three splits of a NeRF-synthetic scene.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SyntheticSplit {
+    /// The training views (`transforms_train.json`).
     Train,
+    /// The validation views (`transforms_val.json`).
     Val,
+    /// The test views (`transforms_test.json`).
     Test,
 }
 
 impl SyntheticSplit {
+    /// The split's transforms file name inside a scene folder.
     pub fn file_name(self) -> &'static str {
         match self {
             SyntheticSplit::Train => "transforms_train.json",
@@ -91,6 +97,7 @@ pub struct SyntheticReader {
 }
 
 impl SyntheticReader {
+    /// Open and check the `transforms_*.json` at `json_path`; images are read later, per frame.
     pub fn open(json_path: &Path, options: &LoadOptions) -> Result<SyntheticReader> {
         SyntheticReader::from_json(JsonFile::read(json_path)?, options)
     }
@@ -132,10 +139,12 @@ impl SyntheticReader {
         })
     }
 
+    /// The number of frames the file lists.
     pub fn len(&self) -> usize {
         self.jobs.len()
     }
 
+    /// Whether the file lists no frame.
     pub fn is_empty(&self) -> bool {
         self.jobs.is_empty()
     }

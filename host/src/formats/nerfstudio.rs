@@ -38,8 +38,9 @@ enum LensModel {
 /// Intrinsics and distortion coefficients may be global or per frame (a frame's value wins).
 /// Distorted images are undistorted while they are decoded (to the pinhole camera of the same
 /// `fl_x, fl_y, cx, cy`, as SPEED+ frames are), so rays are cast through the lens:
-/// - `camera_model` absent or one of [`PERSPECTIVE_CAMERA_MODELS`]: OpenCV's standard model,
-///   `k1, k2, k3` radial and `p1, p2` tangential (zero when absent; `k4` is refused);
+/// - `camera_model` absent or one of `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`,
+///   `OPENCV`: OpenCV's standard model, `k1, k2, k3` radial and `p1, p2` tangential (zero
+///   when absent; `k4` is refused);
 /// - `OPENCV_FISHEYE`: the equidistant fisheye `k1..k4` (`p1`, `p2` are refused);
 /// - any other model (equirectangular, omnidirectional, ..) is refused.
 ///

@@ -1,13 +1,13 @@
 //! Image resampling for the loaders. Two resamplers, because the formats need different ones:
 //!
-//! - [`resample`] (NeRF formats): pixels are turned into values first (compositing alpha on the
+//! - `resample` (NeRF formats): pixels are turned into values first (compositing alpha on the
 //!   background, say), then a box average when the size shrinks by whole factors (the
 //!   convention NeRF-synthetic results are scored on), a tent filter otherwise;
-//! - [`Resampler`] (SPEED+ / SHIRT, distorted nerfstudio frames): supersampled bilinear
+//! - `Resampler` (SPEED+ / SHIRT, distorted nerfstudio frames): supersampled bilinear
 //!   lookups through the lens distortion, so distorted images come out as pinhole images of
 //!   any size.
 //!
-//! Both round to bytes with [`to_byte`].
+//! Both round to bytes with `to_byte`.
 
 use super::transforms::{OutputSize, output_size};
 use crate::error::{HostError, Result};
@@ -102,10 +102,11 @@ pub enum Distortion {
 const FISHEYE_AXIS: f32 = 1e-8;
 
 impl Distortion {
-    /// The largest radial (`k`) and tangential (`p`) coefficient accepted: far beyond any real
-    /// lens (COLMAP's and OpenCV's fits stay well under 1), so a larger one is a broken
-    /// calibration.
+    /// The largest radial (`k1`, `k2`, `k3`..) coefficient accepted (absolute value): far
+    /// beyond any real lens (COLMAP's and OpenCV's fits stay well under 1), so a larger one is
+    /// a broken calibration.
     pub const MAX_RADIAL: f64 = 10.0;
+    /// The largest tangential (`p1`, `p2`) coefficient accepted, by the same reasoning.
     pub const MAX_TANGENTIAL: f64 = 1.0;
 
     /// The bound of the coefficient named `name` (`k1`.., `p1`, `p2`).

@@ -29,6 +29,7 @@ const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
 /// One pose label in SPEED+ form.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Label {
+    /// The image the label belongs to, relative to the set's image folder.
     pub filename: String,
     /// Scalar-first quaternion of the rotation from the target body frame to the camera frame.
     #[serde(rename = "q_vbs2tango_true")]
@@ -57,6 +58,7 @@ impl Label {
         Quat::from_xyzw(x, y, z, w).normalize()
     }
 
+    /// The target's origin in camera axes, metres (`r_Vo2To_vbs`).
     pub fn translation(&self) -> Vec3 {
         let [x, y, z] = self.r_vo2to_vbs.map(|v| v as f32);
         Vec3::new(x, y, z)
@@ -76,6 +78,22 @@ pub fn read_labels(path: &Path) -> Result<Vec<Label>> {
 }
 
 /// [`read_labels`] on the text of the file `path` names.
+///
+/// ```
+/// use orbit_nerf_host::formats::speedplus::parse_labels;
+/// use std::path::Path;
+///
+/// let path = Path::new("train.json");
+/// let text = r#"[{"filename": "img000001.jpg",
+///     "q_vbs2tango_true": [1, 0, 0, 0], "r_Vo2To_vbs_true": [0.1, -0.2, 8.0]}]"#;
+/// let labels = parse_labels(path, text).unwrap();
+/// assert_eq!(labels[0].filename, "img000001.jpg");
+/// assert_eq!(labels[0].translation().z, 8.0);
+///
+/// // A quaternion of norm 2 is no rotation.
+/// let scaled = text.replace("[1, 0, 0, 0]", "[2, 0, 0, 0]");
+/// assert!(parse_labels(path, &scaled).is_err());
+/// ```
 pub fn parse_labels(path: &Path, text: &str) -> Result<Vec<Label>> {
     labels_of(&JsonFile::parse_any(path, text)?)
 }
@@ -224,17 +242,22 @@ fn first_key<'a>(entry: &'a Value, keys: &[&'static str]) -> Option<(&'static st
 /// direction and exposure it was rendered with, and the box that holds the target.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Truth {
-    /// Box holding the target, body frame, metres (with a margin).
+    /// Lower corner of the box holding the target, body frame, metres (with a margin).
     pub target_box_min: [f32; 3],
+    /// Upper corner of the box holding the target, body frame, metres.
     pub target_box_max: [f32; 3],
+    /// One entry per rendered image, in any order (paired with labels by filename).
     pub frames: Vec<TruthFrame>,
 }
 
+/// What the simulator knows exactly about one frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TruthFrame {
+    /// The image the entry belongs to, as named in the label file.
     pub filename: String,
-    /// Exact body-to-camera rotation (scalar first) and target position in camera axes.
+    /// Exact body-to-camera rotation, scalar-first unit quaternion.
     pub q_vbs2tango_true: [f64; 4],
+    /// Exact target origin in camera axes (x right, y down, z forward), metres.
     #[serde(rename = "r_Vo2To_vbs_true")]
     pub r_vo2to_vbs_true: [f64; 3],
     /// Unit vector from the target towards the sun, body frame.
@@ -255,6 +278,8 @@ impl TruthFrame {
 }
 
 impl Truth {
+    /// Read and check the truth file at `path`: unique filenames, unit quaternions, positions
+    /// a camera can be at, and a finite box with min below max.
     pub fn read(path: &Path) -> Result<Truth> {
         let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
         Truth::parse(path, &text)
@@ -295,6 +320,7 @@ impl Truth {
         Ok(truth)
     }
 
+    /// Write the truth file to `path` (atomically, pretty-printed JSON).
     pub fn write(&self, path: &Path) -> Result<()> {
         write_json(path, self)
     }
@@ -353,6 +379,7 @@ pub struct SpeedPlusSet {
     pub truth: Option<Truth>,
     /// The camera file as read (the stored image size, before any resampling).
     pub camera: SpeedCamera,
+    /// The label file the set was read from (a folder resolves to the label file in it).
     pub label_file: PathBuf,
 }
 
@@ -414,14 +441,19 @@ pub fn load(path: &Path, options: &LoadOptions) -> Result<SpeedPlusSet> {
 /// only when that frame is asked for (streaming never holds the whole set).
 pub struct SpeedPlusReader {
     labels: JsonFile,
+    /// The simulator's `truth.json` beside the label file, when there is one.
     pub truth: Option<Truth>,
+    /// The label file the set is read from (a folder resolves to the label file in it).
     pub label_file: PathBuf,
     images_dir: PathBuf,
     masks_dir: Option<PathBuf>,
+    /// Turns the set's stored images into frames (size check, resampling, undistortion).
     pub decoder: FrameDecoder,
 }
 
 impl SpeedPlusReader {
+    /// Open a label file or folder: find and read the label file, `camera.json` (here or up
+    /// to two folders up), the image folder and `truth.json`; no image is decoded yet.
     pub fn open(path: &Path, options: &LoadOptions) -> Result<SpeedPlusReader> {
         let label_file = find_label_file(path)?;
         let label_dir = label_file.parent().unwrap_or(Path::new(".")).to_path_buf();
@@ -457,6 +489,7 @@ impl SpeedPlusReader {
         self.entries().len()
     }
 
+    /// Whether the label file lists no frame.
     pub fn is_empty(&self) -> bool {
         self.entries().is_empty()
     }

@@ -4,7 +4,7 @@
 //! Both store OpenGL/Blender camera-to-world matrices (x right, y up, camera looking down -z).
 //! The dataset uses OpenCV axes (x right, y down, z forward), so the camera's y and z columns
 //! flip sign: `R_cv = R_gl * diag(1, -1, -1)`; the camera centre is unchanged (see
-//! [`JsonFile::pose`](super::json::JsonFile::pose)).
+//! `JsonFile::pose` in `formats/json.rs`).
 //!
 //! Transparent images are composited on [`LoadOptions::background`] at full resolution
 //! (`rgb * a + bg * (1 - a)`: premultiplied colour plus the background's share) *before* any resampling, so edges
@@ -30,14 +30,21 @@ pub enum OutputSize {
     /// The images' own size.
     Original,
     /// Exactly this size (the aspect ratio may change; `fx` and `fy` scale separately).
-    Exact { width: u32, height: u32 },
+    Exact {
+        /// Output width in pixels.
+        width: u32,
+        /// Output height in pixels.
+        height: u32,
+    },
     /// Shrink so that the longer side is at most this many pixels, keeping the aspect ratio.
     /// Never enlarges.
     MaxSide(u32),
 }
 
+/// How a `transforms.json` loader produces its frames.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LoadOptions {
+    /// Size of the frames produced.
     pub size: OutputSize,
     /// Colour (RGB in [0, 1]) that transparent pixels are composited on. The core renders onto
     /// black, so black is the default; NeRF-synthetic results in papers use white.

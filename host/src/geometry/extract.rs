@@ -41,8 +41,8 @@ impl Default for SurfaceOptions {
 /// half opaque.
 const DEFAULT_SEGMENTS: f32 = 128.0;
 
-/// The density at which a segment of the scene box's diagonal over [`DEFAULT_SEGMENTS`] is half
-/// opaque: `ln 2 * 128 / diagonal`, the diagonal in length units. It depends on the box's
+/// The density at which a segment of 1/128 of the scene box's diagonal is half opaque:
+/// `ln 2 * 128 / diagonal`, the diagonal in length units. It depends on the box's
 /// shape only, not its size (length units) nor the model's `march_steps`, so one default
 /// serves every scene and every training setup (17.1 on any cubic box).
 pub fn default_threshold(config: &Config) -> f32 {

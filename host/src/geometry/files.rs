@@ -13,6 +13,42 @@ use ply_rs_bw::writer::Writer;
 use std::fmt::Write as _;
 use std::path::Path;
 
+/// A mesh file's format, told from its name's extension.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum MeshFormat {
+    /// Binary PLY (`.ply`): a mesh or a point cloud.
+    Ply,
+    /// Wavefront OBJ (`.obj`): a mesh only.
+    Obj,
+}
+
+impl MeshFormat {
+    /// The format of the file `out` by its extension (case ignored); a point cloud
+    /// (`points`) must be PLY.
+    pub fn of(out: &Path, points: bool) -> Result<MeshFormat> {
+        let extension = (out.extension().and_then(|e| e.to_str())).map(str::to_ascii_lowercase);
+        match extension.as_deref() {
+            Some("ply") => Ok(MeshFormat::Ply),
+            Some("obj") if !points => Ok(MeshFormat::Obj),
+            _ => Err(HostError::invalid(
+                out,
+                format!(
+                    "--out must end in {}",
+                    if points { ".ply" } else { ".ply or .obj" }
+                ),
+            )),
+        }
+    }
+
+    /// Write `mesh` to `out` in this format (its vertices alone when `points`), atomically.
+    pub fn write(self, out: &Path, mesh: &Mesh, points: bool) -> Result<()> {
+        match self {
+            MeshFormat::Ply => write_ply(out, mesh, !points),
+            MeshFormat::Obj => write_obj(out, mesh),
+        }
+    }
+}
+
 /// Write `mesh` as binary PLY: vertices (x, y, z, nx, ny, nz, red, green, blue) and, when
 /// `with_faces`, its triangles (`vertex_indices`); without them it is a point cloud.
 pub fn write_ply(path: &Path, mesh: &Mesh, with_faces: bool) -> Result<()> {

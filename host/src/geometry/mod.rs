@@ -13,9 +13,11 @@ pub use extract::{SurfaceOptions, extract_surface};
 /// A triangle mesh with a unit normal and an RGB8 colour per vertex (world frame).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Mesh {
+    /// Vertex positions, world units.
     pub positions: Vec<[f32; 3]>,
     /// Unit outward normals (towards lower density).
     pub normals: Vec<[f32; 3]>,
+    /// Vertex colours, RGB8.
     pub colours: Vec<[u8; 3]>,
     /// Vertex indices, three per triangle.
     pub triangles: Vec<[u32; 3]>,

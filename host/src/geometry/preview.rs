@@ -4,7 +4,7 @@
 use super::Mesh;
 use orbit_nerf_core::glam::Vec3;
 
-/// RGB8 picture (`size` x `size`, white background) of `mesh` seen from direction `from`
+/// RGB8 picture (`size` x `size` pixels, white background) of `mesh` seen from direction `from`
 /// (towards the mesh's centre) with `up` upwards, the mesh filling the frame.
 pub fn preview(mesh: &Mesh, size: u32, from: Vec3, up: Vec3) -> Vec<u8> {
     let size = size.max(1) as usize;

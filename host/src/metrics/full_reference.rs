@@ -31,6 +31,19 @@ pub fn mse<T: Sample>(a: &ImageRef<T>, b: &ImageRef<T>) -> Result<f64, MetricErr
 /// Peak signal-to-noise ratio in dB, `10 log10(L^2 / MSE)` with `L` the data range of `T`
 /// (255 for `u8`, 1 for `f32`). Identical images give `f64::INFINITY`, as scikit-image does:
 /// averaging PSNRs that may be infinite is the caller's decision, not something to hide here.
+///
+/// ```
+/// use orbit_nerf_host::metrics::{ImageRef, psnr};
+///
+/// let reference = [10u8, 20, 30, 40];
+/// let mut render = reference;
+/// render[3] += 10; // one of four pixels off by 10: MSE 25
+/// let a = ImageRef::new(&reference, 2, 2, 1).unwrap();
+/// let b = ImageRef::new(&render, 2, 2, 1).unwrap();
+/// assert_eq!(psnr(&a, &a).unwrap(), f64::INFINITY);
+/// let db = psnr(&a, &b).unwrap(); // 10 log10(255^2 / 25)
+/// assert!((db - 34.151).abs() < 1e-3, "{db}");
+/// ```
 pub fn psnr<T: Sample>(a: &ImageRef<T>, b: &ImageRef<T>) -> Result<f64, MetricError> {
     let mse = mse(a, b)?;
     Ok(10.0 * (T::DATA_RANGE * T::DATA_RANGE / mse).log10())
@@ -44,6 +57,25 @@ pub fn psnr<T: Sample>(a: &ImageRef<T>, b: &ImageRef<T>) -> Result<f64, MetricEr
 ///
 /// A colour image scores the mean of its per-channel SSIMs (scikit-image's `channel_axis`
 /// behaviour, and what NeRF papers report), not the SSIM of its luma.
+///
+/// Images smaller than 11x11 pixels (the window) are refused.
+///
+/// ```
+/// use orbit_nerf_host::metrics::{ImageRef, ssim};
+///
+/// // A 16x16 gray ramp, and the same ramp with one pixel turned white.
+/// let ramp: Vec<u8> = (0..16 * 16).map(|i| (i % 16 * 16) as u8).collect();
+/// let mut changed = ramp.clone();
+/// changed[8 * 16 + 8] = 255;
+/// let a = ImageRef::new(&ramp, 16, 16, 1).unwrap();
+/// let b = ImageRef::new(&changed, 16, 16, 1).unwrap();
+/// assert!((ssim(&a, &a).unwrap() - 1.0).abs() < 1e-12);
+/// let score = ssim(&a, &b).unwrap();
+/// assert!(score > 0.5 && score < 0.99, "{score}");
+///
+/// let tiny = ImageRef::new(&ramp[..8 * 8], 8, 8, 1).unwrap();
+/// assert!(ssim(&tiny, &tiny).is_err());
+/// ```
 pub fn ssim<T: Sample>(a: &ImageRef<T>, b: &ImageRef<T>) -> Result<f64, MetricError> {
     same_shape(a, b)?;
     if a.width < SSIM_WINDOW || a.height < SSIM_WINDOW {

@@ -30,6 +30,7 @@ pub use sharpness::{JnbScore, JnbVariant, cpbd, jnb};
 pub trait Sample: Copy {
     /// Largest value minus smallest value of the type's nominal range.
     const DATA_RANGE: f64;
+    /// The sample's value, unscaled (a `u8` of 255 is 255.0).
     fn to_f64(self) -> f64;
 }
 
@@ -47,49 +48,79 @@ impl Sample for f32 {
     }
 }
 
+/// Why an image cannot be scored.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum MetricError {
+    /// The sample buffer's length does not match the stated image size (or `channels` is 0).
     #[error(
         "image buffer holds {len} samples, a {width}x{height} image with {channels} channels (row stride {stride}) needs {needed}"
     )]
     BufferSize {
+        /// Samples in the buffer.
         len: usize,
+        /// Stated width in pixels.
         width: usize,
+        /// Stated height in pixels.
         height: usize,
+        /// Stated channels per pixel.
         channels: usize,
+        /// Samples from one row to the next.
         stride: usize,
+        /// Samples the stated size needs.
         needed: usize,
     },
+    /// A requested region reaches outside the image.
     #[error(
         "the region {x}+{width} x {y}+{height} does not fit in a {image_width}x{image_height} image"
     )]
     Region {
+        /// Left column of the region, pixels.
         x: usize,
+        /// Top row of the region, pixels.
         y: usize,
+        /// Region width in pixels.
         width: usize,
+        /// Region height in pixels.
         height: usize,
+        /// Width of the image, pixels.
         image_width: usize,
+        /// Height of the image, pixels.
         image_height: usize,
     },
+    /// A full-reference metric was given two images of different shapes.
     #[error("images differ in shape: {a:?} vs {b:?} (width, height, channels)")]
     ShapeMismatch {
+        /// The first image's width, height and channels.
         a: (usize, usize, usize),
+        /// The second image's width, height and channels.
         b: (usize, usize, usize),
     },
+    /// The image is smaller than the metric's window.
     #[error("{metric} needs at least {min}x{min} pixels, the image is {width}x{height}")]
     TooSmall {
+        /// The metric's name, e.g. `SSIM`.
         metric: &'static str,
+        /// The smallest width and height the metric accepts, pixels.
         min: usize,
+        /// The image's width in pixels.
         width: usize,
+        /// The image's height in pixels.
         height: usize,
     },
+    /// A render holds NaN or infinite samples, so it is refused rather than scored.
     #[error(
         "the render has {count} non-finite samples (NaN or infinite): it is not an image and has no score"
     )]
-    NonFinite { count: usize },
+    NonFinite {
+        /// How many samples are not finite.
+        count: usize,
+    },
+    /// A metric that works on gray levels was given an image that is neither gray nor RGB.
     #[error("{metric} needs a 1-channel (gray) or 3-channel (RGB) image, got {channels} channels")]
     Channels {
+        /// The metric's name, e.g. `JNB`.
         metric: &'static str,
+        /// The image's channels per pixel.
         channels: usize,
     },
 }
@@ -106,7 +137,8 @@ pub struct ImageRef<'a, T> {
 }
 
 impl<'a, T: Sample> ImageRef<'a, T> {
-    /// A tightly packed image (`stride = width * channels`).
+    /// A tightly packed image (`stride = width * channels`); refused unless `data` holds
+    /// exactly `width * height * channels` samples and `channels` is at least 1.
     pub fn new(
         data: &'a [T],
         width: usize,
@@ -167,12 +199,15 @@ impl<'a, T: Sample> ImageRef<'a, T> {
         })
     }
 
+    /// Width in pixels.
     pub fn width(&self) -> usize {
         self.width
     }
+    /// Height in pixels.
     pub fn height(&self) -> usize {
         self.height
     }
+    /// Samples per pixel (1 gray, 3 RGB, ...).
     pub fn channels(&self) -> usize {
         self.channels
     }
@@ -230,7 +265,6 @@ impl<'a, T: Sample> ImageRef<'a, T> {
     }
 }
 
-#[cfg(test)]
 #[cfg(test)]
 pub(crate) mod tests {
     use super::filters::gaussian_kernel;

@@ -100,6 +100,7 @@ pub(super) type Rgb = [u8; 3];
 /// Text, axes and ticks in every figure.
 pub(super) const INK: Rgb = [0, 0, 0];
 /// Axis ticks' length in pixels, the same in line plots and bar charts.
+#[cfg(feature = "plots")]
 pub(super) const TICK_LENGTH: usize = 6;
 
 /// A packed RGB8 image being drawn on; writes outside it are dropped.
@@ -117,6 +118,7 @@ impl Canvas<'_> {
         }
     }
 
+    #[cfg(feature = "plots")]
     pub(super) fn fill_rect(
         &mut self,
         x: usize,
@@ -139,6 +141,7 @@ impl Canvas<'_> {
 
     /// Text rotated a quarter turn anticlockwise (read bottom to top, as a y-axis label), its
     /// glyph tops facing left at column `x`, starting at row `bottom` and going up.
+    #[cfg(feature = "plots")]
     pub(super) fn text_up(
         &mut self,
         x: usize,

@@ -15,19 +15,24 @@ pub const FIGURES_SCHEMA: u32 = 1;
 /// The contents of `metrics.json`.
 #[derive(Clone, Debug, Serialize)]
 pub struct Figures {
+    /// [`FIGURES_SCHEMA`] of the writer, so a script can refuse a layout it does not know.
     pub schema: u32,
     /// The command that wrote it (`train`, `eval`, `ablate`, `demo`, `stream`).
     pub command: String,
+    /// One entry per model scored (an ablation's variants, a stream's and its reference).
     pub models: Vec<ModelFigures>,
 }
 
 /// One model: its mean over the held-out views, each view, and its training when known.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelFigures {
+    /// The model's name in reports (a variant, `model`, a checkpoint's path).
     pub name: String,
     /// The mean over the held-out views, each at its label.
     pub mean: ViewMetrics,
+    /// Each held-out view, in the order scored.
     pub views: Vec<ViewFigures>,
+    /// How the model trained; `None` when it was only loaded (`eval`).
     pub training: Option<TrainingFigures>,
     /// The same means with the views at their exact poses and aligned, where scored.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -50,32 +55,43 @@ pub struct MeansAt {
 /// The pose refinement's figures.
 #[derive(Clone, Debug, Serialize)]
 pub struct PoseRefinementFigures {
+    /// The uncertainty summed up over the training frames.
     pub summary: PoseUncertainty,
+    /// Each training frame's refined pose, uncertainty and (where known) true error.
     pub frames: Vec<FramePose>,
 }
 
 /// One held-out view's metrics, its mean samples per ray and seconds (fit and render).
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewFigures {
+    /// The view's frame index in the dataset.
     pub index: usize,
+    /// The view's image file name.
     pub name: String,
+    /// The view's image metrics (written inline, not as a nested object).
     #[serde(flatten)]
     pub metrics: ViewMetrics,
+    /// Mean samples per ray of the view's render.
     pub samples_per_ray: f64,
+    /// Wall time of fitting the view's embedding and rendering it, seconds.
     pub seconds: f64,
 }
 
 /// How a model trained.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct TrainingFigures {
+    /// Training steps the model has taken (applied or skipped).
     pub steps: u64,
+    /// Steps whose update was skipped because the loss or a gradient was not finite.
     pub steps_skipped: u64,
+    /// Wall time of the training steps, seconds (scoring excluded).
     pub seconds: f64,
     /// Mean samples per training ray (after early ray termination).
     pub samples_per_ray: f64,
 }
 
 impl Figures {
+    /// The figures of `command` for `models`, at the current [`FIGURES_SCHEMA`].
     pub fn new(command: &str, models: Vec<ModelFigures>) -> Figures {
         Figures {
             schema: FIGURES_SCHEMA,

@@ -11,19 +11,27 @@ use std::path::Path;
 /// What one model gave at one noise level.
 #[derive(Clone, Copy, Debug)]
 pub struct ModelOutcome {
-    /// Held-out means at the labels, at the exact poses and aligned (where known).
+    /// Held-out means with each view rendered at its label.
     pub metrics: ViewMetrics,
+    /// Held-out means at the exact poses; `None` where the data has none.
     pub metrics_exact: Option<ViewMetrics>,
+    /// Held-out means at the labels aligned by test-time pose fitting; `None` where not scored.
     pub metrics_aligned: Option<ViewMetrics>,
+    /// Pose error of the training labels against the exact poses; `None` without them.
     pub pose_before: Option<PoseErrors>,
+    /// Pose error of the labels with the learned corrections against the exact poses; `None`
+    /// without them.
     pub pose_after: Option<PoseErrors>,
 }
 
 /// One noise level: the two models (ours, ours + pose) trained on the same labels.
 #[derive(Clone, Copy, Debug)]
 pub struct NoiseLevelResult {
+    /// The noise put on the training labels at this level.
     pub noise: LabelNoise,
+    /// The model without pose correction.
     pub ours: ModelOutcome,
+    /// The model with pose correction.
     pub pose: ModelOutcome,
 }
 

@@ -41,6 +41,24 @@ fn relative_rotation(a: &Pose, b: &Pose) -> (DVec3, f64) {
 }
 
 /// Distance between the two camera centres, in the dataset's units (metres for SPEED+/SHIRT).
+///
+/// ```
+/// use orbit_nerf_core::Pose;
+/// use orbit_nerf_core::glam::{Mat3, Vec3};
+/// use orbit_nerf_host::report::{rotation_error_deg, rotation_error_split_deg, translation_error};
+///
+/// let a = Pose { rotation: Mat3::IDENTITY, center: Vec3::ZERO };
+/// // Turned 10 degrees about its optical axis (+z) and moved 3 m right, 4 m forward.
+/// let b = Pose {
+///     rotation: Mat3::from_rotation_z(10f32.to_radians()),
+///     center: Vec3::new(3.0, 0.0, 4.0),
+/// };
+/// assert!((translation_error(&a, &b) - 5.0).abs() < 1e-9);
+/// assert!((rotation_error_deg(&a, &b) - 10.0).abs() < 1e-4);
+/// let (about, across) = rotation_error_split_deg(&a, &b);
+/// assert!((about - 10.0).abs() < 1e-4 && across.abs() < 1e-4);
+/// assert_eq!(rotation_error_deg(&a, &a), 0.0);
+/// ```
 pub fn translation_error(a: &Pose, b: &Pose) -> f64 {
     a.center.as_dvec3().distance(b.center.as_dvec3())
 }
@@ -48,13 +66,18 @@ pub fn translation_error(a: &Pose, b: &Pose) -> f64 {
 /// Summary of per-frame pose errors against ground truth.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PoseErrors {
+    /// Mean rotation error, degrees.
     pub rotation_deg_mean: f64,
+    /// Median rotation error, degrees.
     pub rotation_deg_median: f64,
+    /// Mean camera-centre distance, dataset units (metres for SPEED+/SHIRT).
     pub translation_mean: f64,
+    /// Median camera-centre distance, dataset units.
     pub translation_median: f64,
     /// Mean of the rotation error's parts about and across the optical axis
-    /// (`rotation_error_split_deg`).
+    /// (`rotation_error_split_deg`), degrees: this one about the axis.
     pub about_view_axis_deg_mean: f64,
+    /// Mean of the rotation error's part across the optical axis, degrees.
     pub across_view_axis_deg_mean: f64,
     /// Number of frames compared.
     pub frames: usize,
@@ -94,11 +117,18 @@ pub fn pose_errors(estimated: &[Pose], truth: &[Pose]) -> PoseErrors {
 /// where the exact pose is known, its true error (`metrics.json`, the ablation report).
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct FramePose {
+    /// The frame's image file name.
     pub name: String,
-    /// `None` (JSON null) where the view does not constrain the pose (no finite sigma).
+    /// 1-sigma attitude uncertainty, degrees; `None` (JSON null) where the view does not
+    /// constrain the pose (no finite sigma).
     pub rotation_sigma_deg: Option<f64>,
+    /// 1-sigma position uncertainty, dataset units; `None` as for `rotation_sigma_deg`.
     pub position_sigma: Option<f64>,
+    /// Rotation error of the refined pose against the exact one, degrees; `None` without
+    /// exact poses.
     pub rotation_error_deg: Option<f64>,
+    /// Camera-centre distance of the refined pose from the exact one, dataset units; `None`
+    /// without exact poses.
     pub position_error: Option<f64>,
 }
 
@@ -131,10 +161,17 @@ pub fn frame_poses(
 /// sigma counts as inside).
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PoseUncertainty {
+    /// Mean 1-sigma attitude uncertainty, degrees; `None` when no frame has a finite one.
     pub rotation_sigma_deg_mean: Option<f64>,
+    /// Mean 1-sigma position uncertainty, dataset units; `None` when no frame has a finite one.
     pub position_sigma_mean: Option<f64>,
+    /// Fraction (0 to 1) of frames whose true rotation error is within 3 sigma; `None`
+    /// without exact poses.
     pub rotation_within_3_sigma: Option<f64>,
+    /// Fraction (0 to 1) of frames whose true position error is within 3 sigma; `None`
+    /// without exact poses.
     pub position_within_3_sigma: Option<f64>,
+    /// Number of frames summarised.
     pub frames: usize,
 }
 

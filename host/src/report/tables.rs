@@ -7,6 +7,16 @@ use super::views::ViewMetrics;
 /// A GitHub-flavoured markdown table with columns padded to a common width, so it also reads
 /// well as plain text. Rows shorter than the widest row are padded with empty cells (the header
 /// too); `|` inside a cell is escaped.
+///
+/// ```
+/// use orbit_nerf_host::report::markdown_table;
+///
+/// let table = markdown_table(&["model", "PSNR"], &[vec!["a|b".into(), "31.20".into()]]);
+/// assert_eq!(
+///     table,
+///     "| model | PSNR  |\n|-------|-------|\n| a\\|b  | 31.20 |\n"
+/// );
+/// ```
 pub fn markdown_table(header: &[&str], rows: &[Vec<String>]) -> String {
     let columns = rows.iter().map(Vec::len).fold(header.len(), usize::max);
     let escape = |cell: &str| cell.replace('|', "\\|");
@@ -44,8 +54,11 @@ pub fn markdown_table(header: &[&str], rows: &[Vec<String>]) -> String {
 /// One model's line in an ablation table: its mean view metrics and its training time.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModelRow {
+    /// The model's name, the row's first cell.
     pub name: String,
+    /// The model's mean held-out view metrics.
     pub metrics: ViewMetrics,
+    /// Wall time of training, seconds.
     pub train_seconds: f64,
 }
 
@@ -185,6 +198,11 @@ pub fn pose_uncertainty_table(rows: &[(String, PoseUncertainty)]) -> String {
         "position error within 3 sigma",
     ];
     let cell = |v: Option<f64>, d: usize| format_or_na(v.unwrap_or(f64::NAN), d);
+    // The unit only beside a number: without exact poses the cell is `n/a` alone.
+    let percent = |share: Option<f64>| match cell(share.map(|v| 100.0 * v), 0) {
+        na if na == "n/a" => na,
+        number => number + " %",
+    };
     let body: Vec<Vec<String>> = rows
         .iter()
         .map(|(name, u)| {
@@ -193,8 +211,8 @@ pub fn pose_uncertainty_table(rows: &[(String, PoseUncertainty)]) -> String {
                 u.frames.to_string(),
                 cell(u.rotation_sigma_deg_mean, 3),
                 cell(u.position_sigma_mean, 4),
-                cell(u.rotation_within_3_sigma.map(|v| 100.0 * v), 0) + " %",
-                cell(u.position_within_3_sigma.map(|v| 100.0 * v), 0) + " %",
+                percent(u.rotation_within_3_sigma),
+                percent(u.position_within_3_sigma),
             ]
         })
         .collect();
@@ -356,6 +374,38 @@ mod tests {
                 "0.0100",
                 "0.100 / 1.100"
             ]
+        );
+    }
+
+    #[test]
+    fn pose_uncertainty_shares_are_percent_or_n_a_alone() {
+        let with_exact = PoseUncertainty {
+            rotation_sigma_deg_mean: Some(0.12345),
+            position_sigma_mean: Some(0.001_23),
+            rotation_within_3_sigma: Some(0.994),
+            position_within_3_sigma: Some(0.5),
+            frames: 40,
+        };
+        let without_exact = PoseUncertainty {
+            rotation_within_3_sigma: None,
+            position_within_3_sigma: None,
+            ..with_exact
+        };
+        let table = pose_uncertainty_table(&[
+            ("exact".into(), with_exact),
+            ("labels only".into(), without_exact),
+        ]);
+        let row = |n: usize| -> Vec<String> {
+            let line = table.lines().nth(n).unwrap();
+            line.split('|').map(|c| c.trim().to_owned()).collect()
+        };
+        assert_eq!(
+            row(2)[1..7],
+            ["exact", "40", "0.123", "0.0012", "99 %", "50 %"]
+        );
+        assert_eq!(
+            row(3)[1..7],
+            ["labels only", "40", "0.123", "0.0012", "n/a", "n/a"]
         );
     }
 }

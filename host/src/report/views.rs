@@ -27,14 +27,23 @@ use crate::metrics::{self, ImageRef, JnbVariant, MetricError};
 ///   image, higher is sharper; `f64::NAN` in figures written before it was reported.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ViewMetrics {
+    /// PSNR of the right half, dB.
     pub psnr_right: f64,
+    /// SSIM of the right half, at most 1.
     pub ssim_right: f64,
+    /// JNB blur per edge of the right half (lower is sharper).
     pub jnb_right: f64,
+    /// PSNR of the whole image, dB.
     pub psnr_full: f64,
+    /// SSIM of the whole image, at most 1.
     pub ssim_full: f64,
+    /// JNB blur per edge of the whole image (lower is sharper).
     pub jnb_full: f64,
+    /// PSNR over the target pixels of the whole image, dB.
     pub psnr_foreground: f64,
+    /// PSNR over the target pixels of the right half, dB.
     pub psnr_foreground_right: f64,
+    /// CPBD of the whole image, from 0 to 1 (higher is sharper).
     #[serde(default = "not_measured")]
     pub cpbd_full: f64,
 }

@@ -33,22 +33,36 @@ use std::time::{Duration, Instant};
 /// The timed parts of the simulation: the always-on pipeline and one stage per effect.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stage {
+    /// Primary rays: the closest surface under every sub-pixel sample.
     Geometry,
+    /// Shadow rays towards the sun.
     Shadows,
+    /// Diffuse light from the sun.
     Sun,
+    /// Specular (Blinn-Phong) highlights of the sun.
     Specular,
+    /// Light reflected by the Earth.
     Albedo,
+    /// Averaging the sub-pixel samples into pixels and the mask.
     Resolve,
+    /// Conversion to one gray channel.
     Grayscale,
+    /// Exposure gain and black level.
     Exposure,
+    /// Bloom around saturated pixels.
     Flare,
+    /// Sensor noise.
     Noise,
+    /// Gamma encoding and quantisation to 8 bits.
     Encode,
+    /// Noise on the labels written for training.
     LabelNoise,
+    /// Encoding and writing the PNG files.
     Write,
 }
 
 impl Stage {
+    /// Every stage, in the order a frame runs them.
     pub const ALL: [Stage; 13] = [
         Stage::Geometry,
         Stage::Shadows,
@@ -65,6 +79,7 @@ impl Stage {
         Stage::Write,
     ];
 
+    /// The stage's name in the timing table.
     pub fn name(self) -> &'static str {
         match self {
             Stage::Geometry => "primary rays",
@@ -130,6 +145,7 @@ impl StageTimes {
         result
     }
 
+    /// The time spent in `stage` so far.
     pub fn get(&self, stage: Stage) -> Duration {
         self.0[stage as usize]
     }
@@ -145,16 +161,25 @@ impl StageTimes {
 /// What a simulation did and how long each part took.
 #[derive(Clone, Debug)]
 pub struct SimulationReport {
+    /// Frames rendered.
     pub frames: u32,
+    /// Image width in pixels.
     pub width: u16,
+    /// Image height in pixels.
     pub height: u16,
+    /// Triangles in the target's mesh.
     pub triangles: usize,
+    /// The effects the scene asked for.
     pub effects: Effects,
+    /// Time spent in each stage, summed over frames and threads.
     pub times: StageTimes,
+    /// Wall time of the whole simulation.
     pub wall_time: Duration,
+    /// The output folder.
     pub out: PathBuf,
-    /// The labels written to `labels.json` and the contents of `truth.json`.
+    /// The labels written to `labels.json`.
     pub labels: Vec<Label>,
+    /// The contents of `truth.json`.
     pub truth: Truth,
 }
 
@@ -261,7 +286,7 @@ pub fn working_memory(spec: &SceneSpec, load_back: bool) -> Vec<crate::memory::P
     parts
 }
 
-/// Image file name of frame `index` (SPEED+ numbering starts at 1).
+/// Image file name of frame `index` (SPEED+ numbering starts at 1), e.g. `img000001.png`.
 pub fn frame_filename(index: u32) -> String {
     format!("img{:06}.png", index + 1)
 }
@@ -276,17 +301,24 @@ pub struct FrameSimulator<'s> {
 
 /// One rendered frame with its labels.
 pub struct SimulatedFrame {
+    /// The image's file name ([`frame_filename`]).
     pub filename: String,
     /// The label to train on (noisy if the scene asks).
     pub label: Label,
     /// The exact pose, sun direction and exposure.
     pub truth: TruthFrame,
+    /// The rendered pixels and mask.
     pub image: RenderedImage,
+    /// Time the frame spent in each stage.
     pub times: StageTimes,
 }
 
 impl<'s> FrameSimulator<'s> {
+    /// Build the target's mesh and the output camera of `scene`; fails when the scene is
+    /// out of range (a command may have changed it since it was loaded, e.g. `--size`), or its
+    /// mesh, materials or camera file cannot be read.
     pub fn new(scene: &'s Scene) -> Result<FrameSimulator<'s>> {
+        scene.check()?;
         let spec = &scene.spec;
         let target = Target::build(scene)?;
         let intrinsics = scene.resolve_data("camera.intrinsics", &spec.camera.intrinsics)?;
@@ -309,6 +341,7 @@ impl<'s> FrameSimulator<'s> {
         self.target.scene_box()
     }
 
+    /// Triangles in the target's mesh.
     pub fn triangle_count(&self) -> usize {
         self.target.triangle_count()
     }

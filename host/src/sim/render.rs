@@ -21,8 +21,12 @@ const DISPLAY_GAMMA: f32 = 1.0 / 2.2;
 
 /// A rendered frame: 8-bit pixels (1 channel if grayscale, else RGB) and the foreground mask.
 pub struct RenderedImage {
+    /// Channels per pixel: 1 (grayscale) or 3 (RGB).
     pub channels: u8,
+    /// Row-major, gamma-encoded 8-bit samples, `channels` per pixel.
     pub pixels: Vec<u8>,
+    /// Row-major foreground mask, one byte per pixel: 255 where at least half the pixel's
+    /// samples hit the target, else 0.
     pub mask: Vec<u8>,
 }
 

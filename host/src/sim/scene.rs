@@ -41,9 +41,13 @@ const BUILTIN_DATA: [(&str, &str); 2] = [
 /// A data file a scene names: on disk, or a copy built into the binary.
 #[derive(Clone, Debug, PartialEq)]
 pub enum SceneData {
+    /// A file on disk, as found.
     File(PathBuf),
+    /// A built-in copy.
     Builtin {
+        /// The name scenes give it (e.g. `speedplus-camera.json`).
         name: &'static str,
+        /// Its contents.
         text: &'static str,
     },
 }
@@ -57,6 +61,7 @@ impl SceneData {
         }
     }
 
+    /// The contents, read from disk for a file.
     pub fn text(&self) -> Result<String> {
         match self {
             SceneData::File(path) => {
@@ -76,25 +81,33 @@ pub fn preset_names() -> impl Iterator<Item = &'static str> {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneSpec {
+    /// The scene's name, for messages and the stored `scene.toml`.
     pub name: String,
+    /// Frames to render, at least 1.
     pub frames: u32,
+    /// Seed of every random draw (poses, sun, exposure, noise): one seed, one dataset.
     pub seed: u64,
-    /// Output images are `size` pixels wide ...
+    /// Output images are `size` pixels wide (at least [`MIN_SIDE`]) ...
     pub size: u16,
     /// ... and `height` pixels tall (default: `size`, square). The camera's focal length
     /// scales with the width; the height widens or narrows the vertical field of view.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub height: Option<u16>,
-    /// Each pixel averages `antialias` x `antialias` rays.
+    /// Each pixel averages `antialias` x `antialias` rays (1 to 4; default 1).
     #[serde(default = "one")]
     pub antialias: u32,
+    /// The spacecraft rendered (`[target]`).
     pub target: TargetSpec,
+    /// The camera's intrinsics and lens (`[camera]`).
     pub camera: CameraSpec,
+    /// How camera and target move from frame to frame (`[poses]`).
     pub poses: PoseSpec,
+    /// Where the sun is in each frame (`[sun]`).
     pub sun: SunSpec,
     /// Materials defined by the scene (they may replace the built-in ones of the same name).
     #[serde(default)]
     pub materials: BTreeMap<String, MaterialSpec>,
+    /// The effects to render (`[effects.NAME]`); an absent one is off.
     #[serde(default)]
     pub effects: Effects,
 }
@@ -107,29 +120,36 @@ fn unit_scale() -> f32 {
     1.0
 }
 
+/// The target spacecraft (`[target]`, `model = "tango"` or `"mesh"`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(tag = "model", rename_all = "snake_case", deny_unknown_fields)]
 pub enum TargetSpec {
     /// Procedural TANGO (body, solar panel, three antennas) sized by the SPEED+ landmarks.
     /// Parts: `body`, `panel`, `antenna`.
     Tango {
+        /// The landmarks file (a path, or the built-in `tango-landmarks.csv`): 11 `x,y,z`
+        /// lines in metres, in the SPEED+ devkit's order.
         landmarks: String,
+        /// Part name -> material name; see [`TargetSpec::materials`].
         #[serde(default)]
         materials: BTreeMap<String, String>,
     },
     /// A Wavefront OBJ mesh; its parts are the OBJ objects/groups, named as in the file.
     Mesh {
+        /// The OBJ file, relative to the scene file's folder or the current folder.
         path: String,
         /// Multiplies the mesh coordinates to give metres.
         #[serde(default = "unit_scale")]
         scale: f32,
+        /// Part name -> material name; see [`TargetSpec::materials`].
         #[serde(default)]
         materials: BTreeMap<String, String>,
     },
 }
 
 impl TargetSpec {
-    /// Part name -> material name; the key `default` covers parts not listed.
+    /// Part name -> material name; the key `default` covers parts not listed (without it they
+    /// are `paint`).
     pub fn materials(&self) -> &BTreeMap<String, String> {
         match self {
             TargetSpec::Tango { materials, .. } | TargetSpec::Mesh { materials, .. } => materials,
@@ -137,43 +157,52 @@ impl TargetSpec {
     }
 }
 
+/// The camera (`[camera]`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraSpec {
-    /// A SPEED+ `camera.json`; its intrinsics are scaled to the output size.
+    /// A SPEED+ `camera.json` (a path, or the built-in `speedplus-camera.json`); its
+    /// intrinsics are scaled to the output size.
     pub intrinsics: String,
     /// Render with the file's lens distortion.
     #[serde(default)]
     pub distortion: bool,
 }
 
+/// How the camera and the target move (`[poses]`, `kind = "approach"` or `"random"`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum PoseSpec {
     /// SHIRT-like: the camera spirals around and towards the target (distance and elevation
     /// change linearly, azimuth makes `turns` turns) while the target spins slowly.
     Approach {
-        /// Camera distance to the target centre at the first and the last frame, metres.
+        /// Camera distance to the target centre at the first and the last frame, metres
+        /// (each in (0, 100 km]).
         distance_m: [f32; 2],
-        /// Camera elevation above the orbit plane at the first and the last frame, degrees.
+        /// Camera elevation above the orbit plane at the first and the last frame, degrees
+        /// (each strictly between -89 and 89).
         elevation_deg: [f32; 2],
+        /// Turns of the camera's azimuth around the target from the first frame to the last.
         turns: f32,
         /// Target attitude in the orbit frame at frame 0 (scalar-first quaternion).
         attitude: [f32; 4],
-        /// Target spin about a body axis, degrees per frame.
+        /// Body axis the target spins about (any non-zero length).
         spin_axis: [f32; 3],
+        /// Target spin about `spin_axis`, degrees per frame.
         spin_deg_per_frame: f32,
     },
     /// SPEED+-like: independent random SE(3) poses, target kept in view.
     Random {
-        /// Distance range, metres.
+        /// Distance range `[min, max]`, metres, drawn uniformly; 0 < min <= max <= 100 km.
         distance_m: [f32; 2],
     },
 }
 
+/// The sun's direction over the frames (`[sun]`).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SunSpec {
+    /// How the direction changes from frame to frame.
     pub path: SunPath,
     /// Direction to the sun in the orbit frame (x along track, z towards the Earth) at frame 0
     /// (`orbit`, `fixed`); unused by `random`.
@@ -182,10 +211,11 @@ pub struct SunSpec {
     /// Axis the sun direction turns about along the orbit (`orbit` only).
     #[serde(default = "default_orbit_axis")]
     pub axis: [f32; 3],
+    /// How far the sun direction turns about `axis` per frame, degrees (`orbit` only).
     #[serde(default)]
     pub deg_per_frame: f32,
     /// Largest angle between the directions target -> sun and target -> camera (`random`
-    /// only): below 180 the camera sees mostly lit faces.
+    /// only), 10 to 180 degrees (default 180): below 180 the camera sees mostly lit faces.
     #[serde(default = "default_max_phase")]
     pub max_phase_deg: f32,
 }
@@ -202,11 +232,15 @@ fn default_orbit_axis() -> [f32; 3] {
     [0.0, 1.0, 0.0]
 }
 
+/// How the sun direction changes over the frames.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SunPath {
+    /// The same direction (`direction`) in every frame.
     Fixed,
+    /// `direction` turning about `axis` by `deg_per_frame` each frame.
     Orbit,
+    /// A random direction per frame, within `max_phase_deg` of the camera's.
     Random,
 }
 
@@ -215,13 +249,18 @@ pub enum SunPath {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MaterialSpec {
+    /// Diffuse albedo, linear RGB, each in [0, 1].
     pub diffuse: [f32; 3],
+    /// Specular reflectance, linear RGB, each in [0, 1] (default 0: no highlight).
     #[serde(default)]
     pub specular: [f32; 3],
+    /// Blinn-Phong exponent, positive (default 20): higher is a sharper highlight.
     #[serde(default = "default_shininess")]
     pub shininess: f32,
+    /// Spacing of the grid lines, metres; 0 (the default) means no grid.
     #[serde(default)]
     pub grid_pitch_m: f32,
+    /// How much brighter the grid lines are than the surface (0.35 is 35 % brighter), >= 0.
     #[serde(default)]
     pub grid_contrast: f32,
 }
@@ -271,14 +310,23 @@ pub fn builtin_material(name: &str) -> Option<MaterialSpec> {
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Effects {
+    /// Direct sunlight (`[effects.sun]`).
     pub sun: Option<SunLight>,
+    /// Shadows of the target on itself (`[effects.shadows]`); needs `sun`.
     pub shadows: Option<Shadows>,
+    /// Fill light from the Earth (`[effects.albedo]`).
     pub albedo: Option<EarthAlbedo>,
+    /// Specular highlights (`[effects.specular]`); needs `sun`.
     pub specular: Option<Specular>,
+    /// Per-frame exposure (`[effects.exposure]`); without it every frame has exposure 1.
     pub exposure: Option<Exposure>,
+    /// Bloom around bright pixels (`[effects.flare]`).
     pub flare: Option<Flare>,
+    /// Sensor noise (`[effects.noise]`).
     pub noise: Option<SensorNoise>,
+    /// Gray images (`[effects.grayscale]`).
     pub grayscale: Option<Grayscale>,
+    /// Noise on the training labels (`[effects.label_noise]`); `truth.json` stays exact.
     pub label_noise: Option<LabelNoise>,
 }
 
@@ -286,6 +334,7 @@ pub struct Effects {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SunLight {
+    /// Sun irradiance, linear units, positive (default 1).
     #[serde(default = "unit_scale")]
     pub irradiance: f32,
 }
@@ -320,7 +369,10 @@ pub struct Specular {}
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Exposure {
+    /// `[min, max]` exposure multiplier, 0 < min <= max (1 is nominal).
     pub range: [f32; 2],
+    /// Linear value mapped to black, in [0, 1) (default 0); the rest is stretched to fill
+    /// the range.
     #[serde(default)]
     pub black_level: f32,
 }
@@ -329,9 +381,12 @@ pub struct Exposure {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Flare {
+    /// Linear value above which light blooms, >= 0 (default 1: white).
     #[serde(default = "unit_scale")]
     pub threshold: f32,
+    /// Standard deviation of the blur, pixels, in (0, 64].
     pub sigma_px: f32,
+    /// Multiplier of the blurred light added back, >= 0.
     pub strength: f32,
 }
 
@@ -340,7 +395,9 @@ pub struct Flare {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensorNoise {
+    /// Electrons at white (linear value 1), positive: fewer electrons, more shot noise.
     pub full_well: f32,
+    /// Read noise, electrons RMS, >= 0.
     pub read_noise: f32,
 }
 
@@ -354,7 +411,9 @@ pub struct Grayscale {}
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LabelNoise {
+    /// Standard deviation of the rotation angle, degrees, 0 to 180.
     pub rotation_deg: f32,
+    /// Standard deviation of the position per axis, metres, 0 to 100 km.
     pub translation_m: f32,
 }
 
@@ -381,6 +440,7 @@ impl LabelNoise {
 /// A checked scene, with where it came from (for messages and relative paths).
 #[derive(Clone, Debug)]
 pub struct Scene {
+    /// The checked scene.
     pub spec: SceneSpec,
     /// The scene file (for a preset: its file in `scenes/`).
     pub origin: PathBuf,
@@ -389,7 +449,8 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// A preset name (`synthetic`, `lightbox`, `sunlamp`, `inspection`) or the path of a scene file. A
+    /// A preset name (`synthetic`, `lightbox`, `sunlamp`, `inspection`, `lightbox-test`) or the
+    /// path of a scene file. A
     /// preset's data are the built-in copies; a scene file's data paths are tried relative to
     /// its folder, then the current folder, then against the built-in names.
     pub fn load(name_or_path: &str) -> Result<Scene> {
@@ -423,13 +484,21 @@ impl Scene {
             let field = e.path().to_string();
             HostError::field(&origin, field, e.into_inner().to_string())
         })?;
-        spec.check()
-            .map_err(|(field, reason)| HostError::field(&origin, field, reason))?;
-        Ok(Scene {
+        let scene = Scene {
             spec,
             origin,
             search_dirs,
-        })
+        };
+        scene.check()?;
+        Ok(scene)
+    }
+
+    /// Check the scene's ranges and consistency: when loaded, and again before it is rendered,
+    /// since a command may have changed it since (`--size`, `--frames`).
+    pub fn check(&self) -> Result<()> {
+        self.spec
+            .check()
+            .map_err(|(field, reason)| HostError::field(&self.origin, field, reason))
     }
 
     /// Resolve a data file named by `field`: absolute, or relative to the search folders
@@ -549,6 +618,9 @@ fn ensure(ok: bool, field: &str, reason: &str) -> std::result::Result<(), Proble
     }
 }
 
+/// Smallest image side, pixels: a scene's `size` and `height`, and what `--size` sets.
+pub const MIN_SIDE: u16 = 8;
+
 /// Farthest camera distance (metres): f32 positions there still resolve a centimetre, and the
 /// squared distances the geometry takes stay far from overflowing.
 const MAX_DISTANCE_M: f32 = 1e5;
@@ -564,25 +636,27 @@ impl SceneSpec {
     }
 
     /// Output images whose longer side is `side` pixels, the other scaled along (rounded, at
-    /// least 8 px): what `--size` means for every command, simulated or read.
+    /// least [`MIN_SIDE`]): what `--size` means for every command, simulated or read. A `side`
+    /// below [`MIN_SIDE`] is kept, and refused by [`Scene::check`] before anything renders.
     pub fn set_longer_side(&mut self, side: u16) {
         let (width, height) = (u32::from(self.size), u32::from(self.height()));
         if height > width {
             let scaled = (width * u32::from(side) + height / 2) / height;
-            self.size = scaled.clamp(8, u32::from(u16::MAX)) as u16;
+            self.size = scaled.clamp(u32::from(MIN_SIDE), u32::from(u16::MAX)) as u16;
             self.height = Some(side);
         } else {
             self.set_width(side);
         }
     }
 
-    /// Output images `width` pixels wide, the height scaled along (rounded, at least 8 px),
-    /// so the scene keeps its aspect ratio at any size.
+    /// Output images `width` pixels wide, the height scaled along (rounded, at least
+    /// [`MIN_SIDE`]), so the scene keeps its aspect ratio at any size. A `width` below
+    /// [`MIN_SIDE`] is kept, and refused by [`Scene::check`] before anything renders.
     pub fn set_width(&mut self, width: u16) {
         if let Some(height) = self.height {
             let scaled = (u32::from(height) * u32::from(width) + u32::from(self.size) / 2)
                 / u32::from(self.size.max(1));
-            self.height = Some(scaled.clamp(8, u32::from(u16::MAX)) as u16);
+            self.height = Some(scaled.clamp(u32::from(MIN_SIDE), u32::from(u16::MAX)) as u16);
         }
         self.size = width;
     }
@@ -590,8 +664,15 @@ impl SceneSpec {
     /// Ranges and consistency the types alone do not express.
     fn check(&self) -> std::result::Result<(), Problem> {
         ensure(self.frames >= 1, "frames", "must be at least 1")?;
-        ensure(self.size >= 8, "size", "must be at least 8 pixels")?;
-        ensure(self.height() >= 8, "height", "must be at least 8 pixels")?;
+        for (field, side) in [("size", self.size), ("height", self.height())] {
+            ensure(
+                side >= MIN_SIDE,
+                field,
+                &format!(
+                    "{side} px is below the smallest image side, {MIN_SIDE} px (set by the scene file, or by --size)"
+                ),
+            )?;
+        }
         ensure(
             (1..=4).contains(&self.antialias),
             "antialias",
@@ -807,6 +888,34 @@ mod tests {
         assert_eq!((portrait.size, portrait.height()), (30, 48));
         portrait.set_longer_side(8);
         assert_eq!((portrait.size, portrait.height()), (8, 8));
+    }
+
+    /// The setters keep what `--size` asked for; the check that runs before rendering refuses
+    /// a side below the minimum, naming the field and --size.
+    #[test]
+    fn a_size_below_the_minimum_set_after_loading_is_refused() {
+        let refused_field = |scene: &Scene| match scene.check() {
+            Err(HostError::Field { field, reason, .. }) => {
+                assert!(reason.contains("--size"), "{reason}");
+                field
+            }
+            other => panic!("expected a field error, got {other:?}"),
+        };
+        for side in [0, 3, MIN_SIDE - 1] {
+            let mut square = Scene::load("lightbox").unwrap();
+            square.spec.set_longer_side(side);
+            assert_eq!(refused_field(&square), "size", "--size {side}");
+            let mut landscape = Scene::load("inspection").unwrap();
+            landscape.spec.set_width(side);
+            assert_eq!(refused_field(&landscape), "size", "width {side}");
+            let mut portrait = landscape.clone();
+            (portrait.spec.size, portrait.spec.height) = (150, Some(240));
+            portrait.spec.set_longer_side(side);
+            assert_eq!(refused_field(&portrait), "height", "--size {side}");
+        }
+        let mut smallest = Scene::load("inspection").unwrap();
+        smallest.spec.set_longer_side(MIN_SIDE);
+        smallest.check().unwrap();
     }
 
     #[test]

@@ -21,8 +21,11 @@ const SCENE_BOX_MARGIN: f32 = 0.10;
 /// Reflectance of one part, in linear units.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {
+    /// Diffuse albedo, RGB in [0, 1].
     pub diffuse: Vec3,
+    /// Specular reflectance, RGB.
     pub specular: Vec3,
+    /// Blinn-Phong exponent: higher is a sharper highlight.
     pub shininess: f32,
     grid_pitch: f32,
     grid_contrast: f32,
@@ -115,21 +118,26 @@ impl Triangle {
 /// What a ray hit.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
+    /// Distance along the ray's unit direction, metres.
     pub distance: f32,
     /// Unit geometric normal (either side).
     pub normal: Vec3,
+    /// Index of the hit triangle's material in [`Target::materials`].
     pub material: u16,
 }
 
 /// Reusable traversal stack (node index, entry distance), one per thread.
 pub type TraversalStack = Vec<(usize, f32)>;
 
+/// The target's triangles (body frame, metres) in a BVH, with their materials.
 pub struct Target {
     triangles: Vec<Triangle>,
     bvh: Bvh<f32, 3>,
+    /// The distinct materials of the parts; a hit's `material` indexes this.
     pub materials: Vec<Material>,
-    /// Tight bounding box, body frame, metres.
+    /// Lower corner of the tight bounding box, body frame, metres.
     pub box_min: Vec3,
+    /// Upper corner of the tight bounding box, body frame, metres.
     pub box_max: Vec3,
 }
 
@@ -145,7 +153,18 @@ impl Target {
         let parts = match &scene.spec.target {
             TargetSpec::Tango { landmarks, .. } => {
                 let data = scene.resolve_data("target.landmarks", landmarks)?;
-                tango_parts(&parse_landmarks(&data.origin(), &data.text()?)?)
+                let points = parse_landmarks(&data.origin(), &data.text()?)?;
+                let points: &[Vec3; TANGO_LANDMARKS] =
+                    points.as_slice().try_into().map_err(|_| {
+                        HostError::invalid(
+                            data.origin(),
+                            format!(
+                                "TANGO needs exactly {TANGO_LANDMARKS} landmarks (4 solar-panel corners, 4 body corners, 3 antenna tips), the file has {}",
+                                points.len()
+                            ),
+                        )
+                    })?;
+                tango_parts(points)
             }
             TargetSpec::Mesh { path, scale, .. } => {
                 let file = scene.resolve_path("target.path", path)?;
@@ -221,10 +240,12 @@ impl Target {
             .collect()
     }
 
+    /// Triangles in the mesh.
     pub fn triangle_count(&self) -> usize {
         self.triangles.len()
     }
 
+    /// Centre of the bounding box, body frame, metres.
     pub fn center(&self) -> Vec3 {
         0.5 * (self.box_min + self.box_max)
     }
@@ -346,36 +367,66 @@ pub fn read_landmarks(path: &Path) -> Result<Vec<Vec3>> {
     parse_landmarks(path, &text)
 }
 
-/// [`read_landmarks`] on the text of the file `path` names.
+/// [`read_landmarks`] on the text of the file `path` names. Every field of every landmark line
+/// must be a finite number, no farther from the origin than a mesh's vertices may be.
 pub fn parse_landmarks(path: &Path, text: &str) -> Result<Vec<Vec3>> {
-    text.lines()
-        .enumerate()
-        .skip(1)
+    let mut lines = text.lines().enumerate();
+    // A first line that is a landmark would be lost as the header.
+    if let Some((_, header)) = lines.next()
+        && parse_landmark(path, 1, header).is_ok()
+    {
+        return Err(HostError::field(
+            path,
+            "line 1",
+            "the first line is the header `x,y,z`, not a landmark",
+        ));
+    }
+    lines
         .filter(|(_, line)| !line.trim().is_empty())
-        .map(|(line_index, line)| {
-            let values: Vec<f32> = line
-                .split(',')
-                .filter_map(|v| v.trim().parse().ok())
-                .collect();
-            match values[..] {
-                [x, y, z] if x.is_finite() && y.is_finite() && z.is_finite() => {
-                    Ok(Vec3::new(x, y, z))
-                }
-                _ => Err(HostError::field(
-                    path,
-                    format!("line {}", line_index + 1),
-                    "expected three numbers x,y,z",
-                )),
-            }
-        })
+        .map(|(line_index, line)| parse_landmark(path, line_index + 1, line))
         .collect()
 }
+
+/// One `x,y,z` line (line number `line_number`, from 1) of the landmarks file `path`.
+fn parse_landmark(path: &Path, line_number: usize, line: &str) -> Result<Vec3> {
+    let fields: Vec<&str> = line.split(',').collect();
+    let [x, y, z] = fields[..] else {
+        return Err(HostError::field(
+            path,
+            format!("line {line_number}"),
+            format!(
+                "expected three numbers x,y,z, found {} fields",
+                fields.len()
+            ),
+        ));
+    };
+    let coordinate = |name: &str, field: &str| {
+        let field = field.trim();
+        match field.parse::<f32>() {
+            Ok(v) if !v.is_finite() => Err(format!("`{field}` is not a finite number")),
+            Ok(v) if v.abs() > MAX_VERTEX_M => Err(format!(
+                "{field} m is farther than {MAX_VERTEX_M:e} m from the origin"
+            )),
+            Ok(v) => Ok(v),
+            Err(_) => Err(format!("`{field}` is not a number")),
+        }
+        .map_err(|reason| HostError::field(path, format!("line {line_number}, {name}"), reason))
+    };
+    Ok(Vec3::new(
+        coordinate("x", x)?,
+        coordinate("y", y)?,
+        coordinate("z", z)?,
+    ))
+}
+
+/// Landmarks of TANGO in the SPEED+ devkit.
+const TANGO_LANDMARKS: usize = 11;
 
 /// TANGO from its 11 landmarks (SPEED+ devkit order): 4 solar-panel corners (top), 4 body
 /// corners (bottom), 3 antenna tips. The body box spans the bottom corners up to the panel,
 /// the panel spans the top corners, and each antenna is a rod from the nearest point of the
 /// body to its tip.
-fn tango_parts(landmarks: &[Vec3]) -> Vec<Part> {
+fn tango_parts(landmarks: &[Vec3; TANGO_LANDMARKS]) -> Vec<Part> {
     let extent = |points: &[Vec3]| {
         points
             .iter()
@@ -525,4 +576,95 @@ fn obj_parts(path: &Path, scale: f32) -> Result<Vec<Part>> {
         ));
     }
     Ok(parts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::PathBuf;
+
+    const BUILTIN_LANDMARKS: &str = include_str!("../../../scenes/tango-landmarks.csv");
+
+    /// The synthetic preset with its landmarks read from a file holding `text`.
+    fn build_with_landmarks(dir: &Path, text: &str) -> (PathBuf, Result<Target>) {
+        let file = dir.join("landmarks.csv");
+        std::fs::write(&file, text).unwrap();
+        let mut scene = Scene::load("synthetic").unwrap();
+        let TargetSpec::Tango { landmarks, .. } = &mut scene.spec.target else {
+            panic!("the synthetic preset is not TANGO");
+        };
+        *landmarks = file.to_str().unwrap().to_owned();
+        let target = Target::build(&scene);
+        (file, target)
+    }
+
+    /// The `(file, field, reason)` of a field error, or a panic naming what came instead.
+    fn field_error(result: Result<Vec<Vec3>>) -> (PathBuf, String, String) {
+        match result {
+            Err(HostError::Field {
+                file,
+                field,
+                reason,
+            }) => (file, field, reason),
+            other => panic!("expected a field error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_landmarks_file_without_exactly_eleven_points_is_refused_naming_both_counts() {
+        let dir = tempfile::tempdir().unwrap();
+        let lines: Vec<&str> = BUILTIN_LANDMARKS.lines().collect();
+        let (_, target) = build_with_landmarks(dir.path(), BUILTIN_LANDMARKS);
+        assert!(target.is_ok(), "{:?}", target.err());
+        let extra = format!("{BUILTIN_LANDMARKS}0.1,0.2,0.3\n");
+        for (text, count) in [
+            (lines[..9].join("\n"), 8),
+            (lines[..11].join("\n"), 10),
+            (lines[..1].join("\n"), 0),
+            (extra, 12),
+        ] {
+            let (file, target) = build_with_landmarks(dir.path(), &text);
+            let message = target
+                .err()
+                .expect("a wrong count must be refused")
+                .to_string();
+            assert!(
+                message.starts_with(&file.display().to_string())
+                    && message.contains("exactly 11 landmarks")
+                    && message.contains(&format!("the file has {count}")),
+                "{message}"
+            );
+        }
+    }
+
+    #[test]
+    fn every_landmark_field_must_be_a_finite_number_in_range() {
+        let path = Path::new("landmarks.csv");
+        assert_eq!(
+            parse_landmarks(path, "x,y,z\n1,2,3\n\n-4.5, 0 ,6e-1\n").unwrap(),
+            vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-4.5, 0.0, 0.6)]
+        );
+        for (line, field, said) in [
+            ("1,abc,3", "line 3, y", "`abc` is not a number"),
+            ("1,2,", "line 3, z", "`` is not a number"),
+            ("inf,2,3", "line 3, x", "`inf` is not a finite number"),
+            ("1,NaN,3", "line 3, y", "`NaN` is not a finite number"),
+            ("1,2,1e30", "line 3, z", "farther than"),
+            ("1,abc,2,3", "line 3", "found 4 fields"),
+            ("1,2", "line 3", "found 2 fields"),
+        ] {
+            let text = format!("x,y,z\n0,0,0\n{line}\n");
+            let (file, got_field, reason) = field_error(parse_landmarks(path, &text));
+            assert_eq!(
+                (file.as_path(), got_field.as_str()),
+                (path, field),
+                "{line}"
+            );
+            assert!(reason.contains(said), "{line}: {reason}");
+        }
+        // Without the header, the first landmark would be lost.
+        let (_, field, reason) = field_error(parse_landmarks(path, "1,2,3\n4,5,6\n"));
+        assert_eq!(field, "line 1");
+        assert!(reason.contains("header"), "{reason}");
+    }
 }

@@ -17,16 +17,26 @@
 //!   written atomically every `checkpoint_every` frames and when the stream stops; resuming
 //!   from it with the same source skips the frames already seen and ends bit-identical to an
 //!   uninterrupted run. A stop request is heard within a training step (the step is given
-//!   up); the resumed stream first takes the rest of the interrupted frame's steps.
+//!   up), and a stop at a step count ([`Control::stop_after`]) ends where that count falls;
+//!   either way the resumed stream first takes the rest of the interrupted frame's steps.
+//! - [`StreamRequest::run`] is the whole stream in one call (config, scene box, memory,
+//!   resume, scoring on all held-out views, the offline reference, the output files), for the
+//!   CLI and for any program that brings its own frames.
 //! - No score and no checkpoint from a model that learned nothing: before every anytime point
 //!   and checkpoint the model is checked by `train`'s rule ([`train::check_trained`]: no
 //!   training ray met the scene box, every step skipped, a non-finite parameter).
 
+pub mod session;
 pub mod source;
 
+pub use session::{
+    FinishedStream, ModelChoice, OfflineReference, SourceKind, Stage, StreamEnd, StreamObserver,
+    StreamRequest,
+};
+#[cfg(feature = "simulator")]
+pub use source::SimulatorSource;
 pub use source::{
-    Arrival, DatasetSource, FrameSource, MaskedSource, SimulatorSource, SourceInfo, WatchOptions,
-    WatchedFolder,
+    Arrival, DatasetSource, FrameSource, MaskedSource, SourceInfo, WatchOptions, WatchedFolder,
 };
 
 use crate::checkpoint;
@@ -60,8 +70,17 @@ pub struct StreamSettings {
 /// A frame that was reported and skipped.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BadFrame {
+    /// Its arrival number (0 for the first arrival).
     pub position: u64,
+    /// What is wrong with it, naming its file (one line).
     pub message: String,
+}
+
+/// `bad frame POSITION: MESSAGE`, as the summary and the CLI report it.
+impl std::fmt::Display for BadFrame {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "bad frame {}: {}", self.position, self.message)
+    }
 }
 
 /// One point of the anytime-quality curve.
@@ -71,14 +90,19 @@ pub struct AnytimePoint {
     pub frames_seen: u64,
     /// Frames in the store.
     pub frames_held: usize,
+    /// Held-out views scored (those seen so far that still read).
     pub held_out_views: usize,
+    /// Training steps taken.
     pub steps: u32,
-    /// Means over the held-out views: whole image, right half, and foreground (NaN without
-    /// masks).
+    /// Mean PSNR over the held-out views, whole image.
     pub psnr: f64,
+    /// Mean SSIM, whole image.
     pub ssim: f64,
+    /// Mean PSNR of the right halves (the left halves fit the embeddings).
     pub psnr_right: f64,
+    /// Mean SSIM of the right halves.
     pub ssim_right: f64,
+    /// Mean PSNR of the foreground (NaN without masks).
     pub psnr_foreground: f64,
     /// Mean wall time per arrival since the previous point (ingest and training, not waiting).
     pub seconds_per_frame: f64,
@@ -107,9 +131,36 @@ impl AnytimePoint {
     }
 }
 
+/// One line of the point: the frames seen and held, the steps, the held-out score (or that no
+/// held-out view has arrived yet: nothing to score), the seconds per frame and the memory.
+impl std::fmt::Display for AnytimePoint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:>4} frames seen, {:>3} held, {:>5} steps: ",
+            self.frames_seen, self.frames_held, self.steps
+        )?;
+        if self.held_out_views == 0 {
+            f.write_str("no held-out view yet")?;
+        } else {
+            write!(
+                f,
+                "PSNR {:.2} dB, SSIM {:.4} on the {} held-out views seen so far",
+                self.psnr, self.ssim, self.held_out_views
+            )?;
+        }
+        write!(
+            f,
+            ", {:.2} s/frame, RSS {:.1} MiB",
+            self.seconds_per_frame, self.rss_mib
+        )
+    }
+}
+
 /// Everything about a stream beyond the trainer's state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamState {
+    /// How the stream trains and reports.
     pub settings: StreamSettings,
     /// The source's [`SourceInfo::identity`]: a resume from another source is refused.
     pub source: String,
@@ -117,16 +168,21 @@ pub struct StreamState {
     pub arrived: Vec<String>,
     /// Arrivals consumed: the source position to resume from.
     pub position: u64,
+    /// Arrivals that were usable frames (held out or offered to the store).
     pub usable: u64,
     /// Frames offered to the store (the core's arrival numbers).
     pub offered: u32,
+    /// Frames the store took.
     pub stored: u64,
+    /// Frames the replacement policy turned away.
     pub rejected: u64,
     /// Source positions of the held-out frames.
     pub held_out: Vec<u64>,
     /// Source position of the frame in each slot.
     pub slot_positions: Vec<Option<u64>>,
+    /// The bad frames, reported and skipped.
     pub bad: Vec<BadFrame>,
+    /// The anytime-quality curve so far.
     pub curve: Vec<AnytimePoint>,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
@@ -137,6 +193,7 @@ pub struct StreamState {
 }
 
 impl StreamState {
+    /// A stream that has seen nothing yet, into a store of `capacity` slots, from `source`.
     pub fn new(settings: StreamSettings, capacity: usize, source: &SourceInfo) -> StreamState {
         StreamState {
             settings,
@@ -162,24 +219,44 @@ impl StreamState {
 pub enum Fate {
     /// Into `slot`, replacing whatever it held.
     Stored {
+        /// The store's slot.
         slot: usize,
     },
     /// The policy kept the held frames.
     Rejected,
+    /// Held out for the anytime-quality curve.
     HeldOut,
+}
+
+/// `-> slot N`, `rejected` or `held out` (padded to a given width).
+impl std::fmt::Display for Fate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Fate::Stored { slot } => f.pad(&format!("-> slot {slot}")),
+            Fate::Rejected => f.pad("rejected"),
+            Fate::HeldOut => f.pad("held out"),
+        }
+    }
 }
 
 /// Progress reports of a running stream.
 pub enum Event<'e> {
+    /// A usable frame went in (or was held out or turned away) and its steps were taken.
     Frame {
+        /// Its arrival number.
         position: u64,
+        /// Its name (the source's: a file, a simulated frame).
         name: &'e str,
+        /// What became of it.
         fate: Fate,
         /// Mean squared error of the last training step.
         mse: f32,
     },
+    /// A bad frame, reported once and skipped.
     Bad(&'e BadFrame),
+    /// A point of the anytime-quality curve, scored and its snapshot saved.
     Anytime(&'e AnytimePoint),
+    /// The checkpoint, written to this path.
     Checkpoint(&'e Path),
 }
 
@@ -189,13 +266,17 @@ pub struct Control<'c> {
     /// given up, the stream checkpoints its last finished step and, resumed, first takes the
     /// rest of the frame's steps.
     pub stop: &'c AtomicBool,
-    /// Stop once this many arrivals have been consumed (deterministic interruption).
-    pub stop_after: Option<u64>,
+    /// Stop once the trainer has taken this many steps in all (a resumed stream's count goes
+    /// on), as `stop` would: within a frame's steps when the count falls there, the resumed
+    /// stream first taking the rest of them (deterministic interruption).
+    pub stop_after: Option<u32>,
     /// End the stream (as if the source ended) after this many arrivals.
     pub end_after: Option<u64>,
+    /// Where the stream's checkpoint is written (its snapshots beside it).
     pub checkpoint: &'c Path,
 }
 
+/// How [`run`] ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Outcome {
     /// The source ended.
@@ -256,7 +337,7 @@ fn core_error(what: impl AsRef<Path>, e: orbit_nerf_core::Error) -> HostError {
 /// positioned by [`FrameSource::seek`]).
 ///
 /// A stop request is heard within a training step (the step is given up) and checkpoints the
-/// last finished step; a stream stopped in the middle of a frame's steps takes the rest of
+/// last finished step, as does reaching `control.stop_after` steps; a stream stopped in the middle of a frame's steps takes the rest of
 /// them first when it resumes ([`steps_owed`]), so it ends bit-identical to one never
 /// stopped. Before every anytime point and every checkpoint the model is checked as `train`
 /// checks it ([`train::check_trained`] over this session's steps): a stream none of whose
@@ -296,7 +377,9 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
     }
     loop {
         if control.stop.load(Ordering::SeqCst)
-            || control.stop_after.is_some_and(|n| state.position >= n)
+            || control
+                .stop_after
+                .is_some_and(|n| trainer.state().step >= n)
         {
             checkpoint(control, trainer, source, state, on_event)?;
             return Ok(Outcome::Stopped);
@@ -414,8 +497,9 @@ pub fn steps_owed(trainer: &Trainer<'_>, state: &StreamState) -> u32 {
 }
 
 /// Train `steps` steps of the frame named `name` (or the rest of them), hearing
-/// `control.stop` within a step; the steps are added to `state.session`. Returns the last
-/// step's loss (NaN before one) and whether the stop cut the steps short.
+/// `control.stop` within a step and ending at `control.stop_after`'s step count; the steps
+/// are added to `state.session`. Returns the last step's loss (NaN before one) and whether a
+/// stop cut the steps short.
 fn train_frame<E: Executor>(
     trainer: &mut Trainer<'_>,
     executor: &E,
@@ -424,7 +508,8 @@ fn train_frame<E: Executor>(
     steps: u32,
     name: &str,
 ) -> Result<(f32, bool)> {
-    let end = trainer.state().step.saturating_add(steps);
+    let frame_end = trainer.state().step.saturating_add(steps);
+    let end = control.stop_after.map_or(frame_end, |n| n.min(frame_end));
     let mut observer = FrameSteps {
         mse: f32::NAN,
         stop: control.stop,
@@ -436,7 +521,7 @@ fn train_frame<E: Executor>(
         },
     )?;
     state.session.add(&tally);
-    Ok((observer.mse, trainer.state().step < end))
+    Ok((observer.mse, trainer.state().step < frame_end))
 }
 
 /// After an arrival (its steps taken, when it was `usable`): the anytime point when one is
@@ -824,9 +909,11 @@ pub fn resume<S: FrameSource + ?Sized>(
 /// after `steps` steps, and the wall time its training had taken by then.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OfflinePoint {
+    /// Training steps taken.
     pub steps: u32,
     /// Training wall time up to `steps` (not the scoring).
     pub seconds: f64,
+    /// Means over the stream's held-out views.
     pub metrics: ViewMetrics,
 }
 

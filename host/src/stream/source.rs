@@ -19,6 +19,7 @@ use crate::error::{HostError, Result};
 use crate::formats::nerf_synthetic::{self, SyntheticReader, SyntheticSplit};
 use crate::formats::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, SpeedPlusReader};
 use crate::formats::transforms::{self, OutputSize};
+#[cfg(feature = "simulator")]
 use crate::sim::{FrameSimulator, Scene};
 use std::cmp::Ordering as Order;
 use std::collections::BTreeSet;
@@ -38,6 +39,7 @@ pub struct SourceInfo {
     /// SPEED+ folder without `truth.json`: the stream sees one frame at a time, too few to
     /// find it, so the user states it).
     pub scene_box: Option<([f32; 3], [f32; 3])>,
+    /// Colour the frames were composited on (and masked-out pixels get), in [0, 1].
     pub background: [f32; 3],
     /// Pixels of the largest frame.
     pub max_pixels: usize,
@@ -47,11 +49,16 @@ pub struct SourceInfo {
 
 /// One arriving frame: usable, or bad (the error names the file and the problem).
 pub enum Arrival {
+    /// A frame that read.
     Frame(Frame),
+    /// A frame that did not read, and why.
     Bad(HostError),
 }
 
+/// Frames arriving one at a time: a dataset folder, the simulator, a watched folder, or any
+/// feed a program brings (a camera, a downlink).
 pub trait FrameSource {
+    /// What the trainer needs to know before the first frame.
     fn info(&self) -> &SourceInfo;
     /// The next frame in arrival order, waiting for it if need be; `None` when the stream has
     /// ended or `stop` was raised while waiting.
@@ -77,6 +84,7 @@ pub struct MaskedSource<'a> {
 }
 
 impl<'a> MaskedSource<'a> {
+    /// `inner` with its frames' masks applied.
     pub fn new(inner: &'a mut dyn FrameSource) -> Self {
         MaskedSource { inner }
     }
@@ -269,6 +277,7 @@ impl FrameSource for DatasetSource {
 }
 
 /// The simulator, rendering the frames of a scene one by one as the stream asks for them.
+#[cfg(feature = "simulator")]
 pub struct SimulatorSource<'s> {
     simulator: FrameSimulator<'s>,
     decoder: FrameDecoder,
@@ -277,7 +286,9 @@ pub struct SimulatorSource<'s> {
     next: u32,
 }
 
+#[cfg(feature = "simulator")]
 impl<'s> SimulatorSource<'s> {
+    /// The frames of `scene`, rendered as they are asked for.
     pub fn new(scene: &'s Scene) -> Result<SimulatorSource<'s>> {
         let simulator = FrameSimulator::new(scene)?;
         let decoder = FrameDecoder::new(simulator.camera_file().clone(), None);
@@ -333,6 +344,7 @@ impl<'s> SimulatorSource<'s> {
     }
 }
 
+#[cfg(feature = "simulator")]
 impl FrameSource for SimulatorSource<'_> {
     fn info(&self) -> &SourceInfo {
         &self.info

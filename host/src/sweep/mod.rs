@@ -9,7 +9,7 @@
 //! scene = "synthetic"          # a preset or a scene file; or data = "path/to/speedplus"
 //! frames = 400                 # simulated scenes only; a list is the image-count study:
 //!                              #   frames = [25, 50, 100, 200, 400], one task per count
-//! test_scene = "paper-test"    # optional: a separate test set (a preset or scene file),
+//! test_scene = "lightbox-test" # optional: a separate test set (a preset or scene file),
 //! test_frames = 200            #   simulated with exact labels; every task is scored on all
 //!                              #   its views and trained on all of its own frames
 //! test_data = "path/to/test"   # or a separate test set read from a dataset folder
@@ -37,7 +37,10 @@
 //! ```
 
 pub mod results;
+pub mod run;
+#[cfg(feature = "slurm")]
 pub mod slurm;
+pub mod studies;
 pub mod tradeoff;
 
 use crate::ablation::{APPEARANCE, APPEARANCE_POSE, BASELINE, Variant};
@@ -90,9 +93,12 @@ pub struct SweepDescription {
     pub masks: Option<bool>,
     /// `"xmin,ymin,zmin,xmax,ymax,zmax"`, as `--scene-box`.
     pub scene_box: Option<String>,
+    /// `[noise]`: the pose-noise sweeps' label-noise levels (simulated scenes only).
     pub noise: Option<NoiseLevels>,
+    /// `[[variants]]`: the models to train (empty: the paper's, see [`Sweep`]).
     #[serde(default)]
     pub variants: Vec<VariantSpec>,
+    /// `[anytime]`: scoring during training and the trade-off report.
     pub anytime: Option<AnytimeSpec>,
 }
 
@@ -100,7 +106,9 @@ pub struct SweepDescription {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(untagged)]
 pub enum FrameCounts {
+    /// `frames = N`: one count.
     One(u32),
+    /// `frames = [N, ...]`: one task per count (the image-count study).
     Many(Vec<u32>),
 }
 
@@ -108,7 +116,12 @@ pub enum FrameCounts {
 #[derive(Clone, Debug, PartialEq)]
 pub enum TestSet {
     /// A scene preset name or a scene file, simulated with exact labels.
-    Scene { scene: String, frames: u32 },
+    Scene {
+        /// The scene preset name, or the scene file's path.
+        scene: String,
+        /// Views to simulate (default: the scene's own frame count).
+        frames: u32,
+    },
     /// A dataset folder of any format (scored at its exact poses where it has them).
     Data(PathBuf),
 }
@@ -117,11 +130,15 @@ pub enum TestSet {
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AnytimeSpec {
+    /// Steps after which the held-out views are also scored (ascending, above 0).
     #[serde(default)]
     pub steps: Vec<u32>,
+    /// The [`Quality`] name the report ranks by (default `psnr_foreground`).
     pub quality: Option<String>,
+    /// Quality levels whose time to reach the report gives (in the quality's unit).
     #[serde(default)]
     pub targets: Vec<f64>,
+    /// Training-time budgets, seconds, within which the report names the best variant.
     #[serde(default)]
     pub budgets_s: Vec<f64>,
 }
@@ -129,15 +146,22 @@ pub struct AnytimeSpec {
 /// The figure a trade-off report ranks variants by: a mean held-out metric.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Quality {
+    /// PSNR over the whole image, dB (`psnr_full`).
     PsnrFull,
+    /// PSNR over the right half (the half the embedding was not fitted on), dB (`psnr_right`).
     PsnrRight,
+    /// PSNR over the foreground pixels, dB (`psnr_foreground`).
     PsnrForeground,
+    /// PSNR over the right half's foreground pixels, dB (`psnr_foreground_right`).
     PsnrForegroundRight,
+    /// SSIM over the whole image, at most 1 (`ssim_full`).
     SsimFull,
+    /// SSIM over the right half, at most 1 (`ssim_right`).
     SsimRight,
 }
 
 impl Quality {
+    /// Every quality, in the order error messages list them.
     pub const ALL: [Quality; 6] = [
         Quality::PsnrFull,
         Quality::PsnrRight,
@@ -171,6 +195,7 @@ impl Quality {
         }
     }
 
+    /// This quality's value in the metrics `m` (higher is better for every quality).
     pub fn of(self, m: &crate::report::ViewMetrics) -> f64 {
         match self {
             Quality::PsnrFull => m.psnr_full,
@@ -196,6 +221,7 @@ impl Quality {
 pub struct Anytime {
     /// Ascending, distinct, above 0; a task scores those below its own steps, then its end.
     pub steps: Vec<u32>,
+    /// The figure the report ranks variants by, reads targets in and plots.
     pub quality: Quality,
     /// Quality levels whose time to reach the report gives, ascending.
     pub targets: Vec<f64>,
@@ -207,8 +233,10 @@ pub struct Anytime {
 #[derive(Clone, Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NoiseLevels {
+    /// Standard deviations of the label rotation noise, degrees (0 to 180), positions exact.
     #[serde(default)]
     pub rotation_deg: Vec<f32>,
+    /// Standard deviations of the label position noise per axis, mm, attitudes exact.
     #[serde(default)]
     pub translation_mm: Vec<f32>,
 }
@@ -217,7 +245,9 @@ pub struct NoiseLevels {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct VariantSpec {
+    /// The variant's name in task names, tables and plots (unique in the sweep).
     pub name: String,
+    /// The config fields it changes in the base config (empty: the base config).
     #[serde(default)]
     pub set: toml::Table,
     /// This variant's image size (default: the sweep's).
@@ -237,16 +267,22 @@ pub enum Source {
 /// one noise level.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Task {
+    /// The task's position in [`Sweep::tasks`] (its array index under Slurm).
     pub index: usize,
     /// `level, variant, seed` in words, for tables and messages.
     pub name: String,
+    /// The variant's name.
     pub variant: String,
+    /// The label noise the training labels get; `None` without `[noise]` (no noise added).
     pub noise: Option<LabelNoise>,
+    /// The training seed (also set in `config`).
     pub seed: u64,
     /// Image size in pixels (the variant's, else the sweep's).
     pub size: u16,
     /// Frames to simulate (a simulated scene; one of the sweep's counts).
     pub frames: u32,
+    /// The config to train: the base config with the variant's fields, the seed and the
+    /// noise level's label prior.
     pub config: Config,
 }
 
@@ -255,25 +291,36 @@ pub struct Task {
 pub struct Sweep {
     /// The description file (or what stands for it), named in errors.
     pub origin: PathBuf,
+    /// Where the frames come from: a simulated scene or a dataset folder.
     pub source: Source,
     /// The frame counts, ascending (one unless the description lists several).
     pub frames: Vec<u32>,
     /// The separate test set, when the description names one (`holdout` is then unused).
     pub test: Option<TestSet>,
+    /// Image size, pixels (longest side), for variants without their own.
     pub size: u16,
+    /// Every N-th view is held out for scoring (2 or more).
     pub holdout: usize,
+    /// Steps fitting each held-out view's embedding.
     pub fit_steps: u32,
+    /// Whether the foreground masks are applied.
     pub masks: bool,
+    /// The scene box stated by `scene_box` (min, max), world units; `None`: the config
+    /// file's, else the data's own, else found from the training views.
     pub scene_box: Option<([f32; 3], [f32; 3])>,
     /// The base config's file, when it is one (a box it sets is used).
     pub config_file: Option<PathBuf>,
     /// The base config with the sweep's steps.
     pub base: Config,
-    /// The two pose-noise sweeps' levels (empty without `[noise]`).
+    /// The rotation sweep's levels (attitudes noisy, positions exact); empty without
+    /// `[noise]`.
     pub rotation: Vec<LabelNoise>,
+    /// The translation sweep's levels (positions noisy, attitudes exact); empty without
+    /// `[noise]`.
     pub translation: Vec<LabelNoise>,
     /// Scoring during training and the trade-off report (`[anytime]`).
     pub anytime: Option<Anytime>,
+    /// Every task: frame count by noise level by variant by seed, indexed from 0.
     pub tasks: Vec<Task>,
 }
 

@@ -23,6 +23,7 @@ pub const RESULT: &str = "result.json";
 pub const TIMING: &str = "timing.json";
 /// The first held-out view as rendered by the task's model.
 pub const RENDER: &str = "render.png";
+/// The task's trained model (fingerprinted in its record).
 pub const CHECKPOINT: &str = "checkpoint.onrf";
 /// The task's output (the local runner and the Slurm script both write it there).
 pub const LOG: &str = "log.txt";
@@ -39,13 +40,21 @@ pub fn task_dir(out: &Path, index: usize) -> PathBuf {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TaskResult {
+    /// The task's index in the sweep (its folder `tasks/<index>`).
     pub index: usize,
+    /// The task's name (`level, variant, seed` in words).
     pub name: String,
+    /// The variant's name.
     pub variant: String,
+    /// The training seed.
     pub seed: u64,
+    /// Standard deviation of the label rotation noise, degrees (0: none).
     pub rotation_noise_deg: f32,
+    /// Standard deviation of the label position noise per axis, mm (0: none).
     pub translation_noise_mm: f32,
+    /// Training steps of the task's config.
     pub steps: u32,
+    /// Number of held-out views scored.
     pub held_out_views: usize,
     /// Means over the held-out views.
     pub metrics: Metrics,
@@ -61,13 +70,17 @@ pub struct TaskResult {
     /// Samples the training rays met in the scene box, over the run.
     #[serde(default)]
     pub samples: u64,
-    /// Pose error of the training labels and of the corrected labels against the exact poses.
+    /// Pose error of the training labels against the exact poses; `None` without exact poses.
     pub pose_before: Option<Poses>,
+    /// Pose error of the corrected training labels against the exact poses; `None` without
+    /// exact poses.
     pub pose_after: Option<Poses>,
-    /// The held-out means with each view at its exact pose (where the data has them) and
-    /// aligned at its label by the pose refinement; `metrics` is at the labels.
+    /// The held-out means with each view at its exact pose; `None` where the data has no
+    /// exact poses (`metrics` is at the labels).
     #[serde(default)]
     pub metrics_exact: Option<Metrics>,
+    /// The held-out means with each view at its label aligned by the pose refinement;
+    /// `None` in records written before it was kept.
     #[serde(default)]
     pub metrics_aligned: Option<Metrics>,
     /// The refined training poses' uncertainty (with pose correction).
@@ -94,8 +107,11 @@ pub struct TaskSettings {
     /// The separate test set (`scene <name>, <n> frames`), when the task was scored on one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test: Option<String>,
+    /// Every N-th view was held out (unused with a separate test set).
     pub holdout: usize,
+    /// Steps fitting each held-out view's embedding.
     pub fit_steps: u32,
+    /// Whether the foreground masks were applied.
     pub masks: bool,
     /// The description's `scene_box` (min, max), when it gives one.
     pub scene_box: Option<[[f32; 3]; 2]>,
@@ -276,7 +292,9 @@ fn check_settings(path: &Path, sweep: &Sweep, task: &Task, record: &TaskResult) 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CurveRecord {
+    /// Training steps taken.
     pub step: u32,
+    /// The held-out views' means at that step, at their labels.
     pub metrics: Metrics,
 }
 
@@ -285,11 +303,15 @@ pub struct CurveRecord {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TaskTiming {
+    /// The task's index in the sweep (as in its [`TaskResult`]).
     pub index: usize,
+    /// The task's name (as in its [`TaskResult`]).
     pub name: String,
     /// Training seconds at each curve point (as `TaskResult::curve`), the last the whole run.
     pub seconds: Vec<f64>,
+    /// Worker threads the task trained with.
     pub threads: usize,
+    /// The machine's CPU model and caches ("unknown" where they cannot be read).
     pub cpu: String,
 }
 
@@ -297,15 +319,24 @@ pub struct TaskTiming {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Metrics {
+    /// PSNR of the whole image, dB; `None` (`null`) where not finite, as for every field here.
     pub psnr_full: Option<f64>,
+    /// PSNR of the right half, dB.
     pub psnr_right: Option<f64>,
+    /// PSNR over the target pixels of the whole image, dB.
     pub psnr_foreground: Option<f64>,
+    /// PSNR over the target pixels of the right half, dB.
     pub psnr_foreground_right: Option<f64>,
+    /// SSIM of the whole image, at most 1.
     pub ssim_full: Option<f64>,
+    /// SSIM of the right half, at most 1.
     pub ssim_right: Option<f64>,
+    /// JNB blur per edge of the whole image (lower is sharper).
     pub jnb_full: Option<f64>,
+    /// JNB blur per edge of the right half (lower is sharper).
     pub jnb_right: Option<f64>,
-    /// Absent in records written before CPBD was reported.
+    /// CPBD of the whole image, 0 to 1 (higher is sharper); absent in records written
+    /// before CPBD was reported.
     #[serde(default)]
     pub cpbd_full: Option<f64>,
 }
@@ -314,12 +345,19 @@ pub struct Metrics {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Poses {
+    /// Mean rotation error, degrees; `None` (`null`) where not finite, as for every error here.
     pub rotation_deg_mean: Option<f64>,
+    /// Median rotation error, degrees.
     pub rotation_deg_median: Option<f64>,
+    /// Mean camera-centre distance, dataset units (metres for the simulator and SPEED+/SHIRT).
     pub translation_mean: Option<f64>,
+    /// Median camera-centre distance, dataset units.
     pub translation_median: Option<f64>,
+    /// Mean rotation error about the optical axis, degrees.
     pub about_view_axis_deg_mean: Option<f64>,
+    /// Mean rotation error across the optical axis, degrees.
     pub across_view_axis_deg_mean: Option<f64>,
+    /// Number of frames compared.
     pub frames: usize,
 }
 
@@ -420,6 +458,8 @@ pub fn fnv1a_file(path: &Path) -> Result<u64> {
     }
 }
 
+/// Write `result` as [`RESULT`] (pretty JSON) into its task's folder under `out`,
+/// atomically: the mark that the task is finished.
 pub fn write_result(out: &Path, result: &TaskResult) -> Result<()> {
     let path = task_dir(out, result.index).join(RESULT);
     let mut text = serde_json::to_string_pretty(result)
@@ -428,6 +468,7 @@ pub fn write_result(out: &Path, result: &TaskResult) -> Result<()> {
     write_atomic(&path, text.as_bytes())
 }
 
+/// Write `timing` as [`TIMING`] (pretty JSON) into its task's folder under `out`, atomically.
 pub fn write_timing(out: &Path, timing: &TaskTiming) -> Result<()> {
     let path = task_dir(out, timing.index).join(TIMING);
     let mut text = serde_json::to_string_pretty(timing)

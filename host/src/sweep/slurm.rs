@@ -1,13 +1,19 @@
 //! The Slurm job-array script of a sweep: one array task per sweep task, each running
 //! `orbit-nerf sweep run-task` (the local runner's entry point) with its output in the task's
 //! folder. The binary, the description and the output folder must be on a filesystem every
-//! node sees.
+//! node sees. [`submit`] writes the script of the unfinished tasks and hands it to `sbatch`.
 
-use std::path::Path;
+use super::Sweep;
+use super::results::{array_spec, unfinished};
+use crate::error::{HostError, Result};
+use crate::io::write_atomic;
+use std::path::{Path, PathBuf};
+use std::process::Command;
 
 /// What the `#SBATCH` lines say besides the array.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Resources {
+    /// CPUs of each array task (`--cpus-per-task`), 1 to [`MAX_CPUS_PER_TASK`].
     pub cpus_per_task: u32,
     /// `None`: the cluster's default partition.
     pub partition: Option<String>,
@@ -129,6 +135,89 @@ pub fn script(
     let mut text = lines.join("\n");
     text.push('\n');
     text
+}
+
+/// What [`submit`] did.
+#[derive(Debug, PartialEq)]
+pub enum Submission {
+    /// Every task has a result: no script written.
+    NothingToRun,
+    /// The script of `pending` of `tasks` tasks (array `array`) written to `script`; `job` is
+    /// the job id `sbatch` gave, `None` when only written.
+    Script {
+        /// The sbatch script.
+        script: PathBuf,
+        /// Tasks without a result, in the array.
+        pending: usize,
+        /// Tasks of the description.
+        tasks: usize,
+        /// The array's `--array` value.
+        array: String,
+        /// The submitted job's id.
+        job: Option<String>,
+    },
+}
+
+/// Write the Slurm array script of the unfinished tasks to `<out>/sweep.sbatch`, running
+/// `exe sweep run-task` per task, and submit it with `sbatch` unless `no_submit`. The binary,
+/// the description and `out` must be on a filesystem every node sees (paths are made
+/// absolute).
+pub fn submit(
+    exe: &Path,
+    description: &Path,
+    out: &Path,
+    resources: &Resources,
+    no_submit: bool,
+) -> Result<Submission> {
+    check(resources).map_err(|reason| HostError::invalid(description, reason))?;
+    let sweep = Sweep::read(description)?;
+    crate::io::check_output_folder(out)?;
+    let pending = unfinished(&sweep, out)?;
+    if pending.is_empty() {
+        return Ok(Submission::NothingToRun);
+    }
+    let slurm_dir = out.join("slurm");
+    std::fs::create_dir_all(&slurm_dir).map_err(|e| HostError::io(&slurm_dir, e))?;
+    let absolute = |p: &Path| std::fs::canonicalize(p).map_err(|e| HostError::io(p, e));
+    let (exe, description_abs, out_abs) = (absolute(exe)?, absolute(description)?, absolute(out)?);
+    check_output_folder(&out_abs).map_err(|reason| HostError::invalid(out, reason))?;
+    let array = array_spec(&pending);
+    let script_path = out.join("sweep.sbatch");
+    let text = script(&exe, &description_abs, &out_abs, &array, resources);
+    write_atomic(&script_path, text.as_bytes())?;
+    let job = if no_submit {
+        None
+    } else {
+        let output = Command::new("sbatch")
+            .arg("--parsable")
+            .arg(&script_path)
+            .output()
+            .map_err(|e| {
+                HostError::invalid(
+                    &script_path,
+                    format!(
+                        "sbatch: {e} (is Slurm installed here? --no-submit only writes the script)"
+                    ),
+                )
+            })?;
+        if !output.status.success() {
+            return Err(HostError::invalid(
+                &script_path,
+                format!(
+                    "sbatch refused it: {}",
+                    String::from_utf8_lossy(&output.stderr).trim()
+                ),
+            ));
+        }
+        Some(String::from_utf8_lossy(&output.stdout).trim().to_string())
+    };
+    Ok(Submission::Script {
+        script: script_path,
+        pending: pending.len(),
+        tasks: sweep.tasks.len(),
+        array,
+        job,
+    })
 }
 
 #[cfg(test)]

@@ -18,8 +18,11 @@ use std::path::Path;
 /// size it uses).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Knob {
+    /// The variant's name, `<knob>=<value>` (`rays_per_batch=2048`).
     pub name: String,
+    /// The config fields it sets (empty for a `size` knob).
     pub set: toml::Table,
+    /// The image size it uses, pixels (longest side); `None`: the sweep's.
     pub size: Option<u32>,
 }
 
@@ -206,8 +209,11 @@ pub fn default_knobs(base: &Config, size: u32) -> Vec<Knob> {
 /// One variant's anytime curve, the mean over its seeds.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VariantCurve {
+    /// The variant's name.
     pub variant: String,
+    /// Its image size, pixels (longest side; 0 in records that do not hold it).
     pub size: u16,
+    /// Bytes of its model's arena.
     pub arena_bytes: u64,
     /// Samples per second of training (samples the rays met / training seconds).
     pub samples_per_second: f64,
@@ -264,7 +270,12 @@ pub fn variant_curves(
                 .collect();
             let (first, _) = *runs.first()?;
             let n = runs.len() as f64;
-            let points = (0..first.curve.len())
+            // Points every seed has (records are checked against the description, but a
+            // short one must not index past its end).
+            let common = (runs.iter())
+                .map(|(r, t)| r.curve.len().min(t.seconds.len()))
+                .min()?;
+            let points = (0..common)
                 .map(|i| {
                     let metrics: Vec<ViewMetrics> = runs
                         .iter()

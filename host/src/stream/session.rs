@@ -1,0 +1,464 @@
+//! A whole stream in one call, for the CLI and for any program that brings its own frames (a
+//! flight computer's camera, a ground station's downlink): [`StreamRequest::run`] chooses the
+//! model config and the scene box, checks the memory, creates the trainer (or restores the
+//! stream saved in the output folder), runs the stream ([`super::run`]) and, once the source
+//! ends, scores the anytime points on all held-out views, trains the offline reference when
+//! asked and writes the curve, `summary.md` and `metrics.json`. It prints nothing: what a
+//! caller shows, it learns from a [`StreamObserver`].
+
+use super::{
+    Control, Event, FixedSetPoint, FrameSource, OfflinePoint, Outcome, StreamSettings, StreamState,
+    core_error, fixed_set_curve, offline_reference, stream_config, write_curve,
+};
+use crate::error::Result;
+use crate::pipeline::{self, CHECKPOINT_FILE, ChosenConfig};
+use crate::report::{Figures, ModelFigures, TrainingFigures};
+use crate::scene_box::box_text;
+use crate::train::RayonExecutor;
+use crate::{io, memory, presets};
+use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+/// Where a stream's frames come from, as far as choosing its preset goes (a preset named in
+/// [`ModelChoice::preset`] wins).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum SourceKind {
+    /// A dataset folder: the preset for its format, told from the folder's layout.
+    DatasetFolder(PathBuf),
+    /// The simulator: the `spacecraft` preset.
+    Simulator,
+    /// A watched folder of SPEED+ frames, or any feed of spacecraft images: the `spacecraft`
+    /// preset.
+    WatchedFolder,
+}
+
+/// The model a fresh stream trains (a resumed stream keeps its checkpoint's).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ModelChoice {
+    /// Built-in config to start from; `None`: the one for the source's [`SourceKind`].
+    pub preset: Option<String>,
+    /// Config file (TOML) of the fields to change in the preset's config; a scene box it sets
+    /// counts as stated.
+    pub config_file: Option<PathBuf>,
+    /// Random seed of the model (over the config's).
+    pub seed: Option<u64>,
+}
+
+impl ModelChoice {
+    /// The config of a fresh stream from a source of `kind`: the preset, the config file's
+    /// fields on top, then the seed; with a note saying which preset and why.
+    fn choose(&self, kind: &SourceKind) -> Result<ChosenConfig> {
+        let (preset, file) = (self.preset.as_deref(), self.config_file.as_deref());
+        let mut chosen = match kind {
+            SourceKind::DatasetFolder(dir) => pipeline::choose_config(preset, dir, file)?,
+            SourceKind::Simulator => {
+                pipeline::preset_config(preset, presets::SPACECRAFT, "a simulated scene", file)?
+            }
+            SourceKind::WatchedFolder => pipeline::preset_config(
+                preset,
+                presets::SPACECRAFT,
+                "a watched folder of SPEED+ frames",
+                file,
+            )?,
+        };
+        if let Some(seed) = self.seed {
+            chosen.config.seed = seed;
+        }
+        Ok(chosen)
+    }
+}
+
+/// Everything about a stream but its frames: how it trains, stops, ends and reports, and
+/// where it writes (see [`StreamRequest::run`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StreamRequest {
+    /// Output folder: `checkpoint.onrf` (the anytime points' model snapshots beside it, in
+    /// `checkpoint.snapshots/`), `anytime.csv`, `anytime.png`, `anytime_time.png`,
+    /// `summary.md`, `metrics.json`.
+    pub out: PathBuf,
+    /// Frame slots of the core's store (a fresh stream's).
+    pub store: u16,
+    /// Replacement policy of a full store (a fresh stream's).
+    pub replacement: Replacement,
+    /// How the stream trains and reports (a fresh stream's; a resumed one keeps its own).
+    pub settings: StreamSettings,
+    /// The model of a fresh stream.
+    pub model: ModelChoice,
+    /// The scene box, min and max corners, stated by the caller: wins over a config file's
+    /// box and the source's.
+    pub scene_box: Option<([f32; 3], [f32; 3])>,
+    /// Stop (and checkpoint) once the trainer has taken this many steps in all, as the stop
+    /// flag would, possibly within a frame's steps; running the request again with `resume`
+    /// continues to the bytes of a stream never stopped.
+    pub stop_after: Option<u32>,
+    /// End the stream after this many arrivals, as if the source ended.
+    pub end_after: Option<u64>,
+    /// Once the stream ends, train a model on all its training frames at once with the same
+    /// number of steps and score it on the same held-out views.
+    pub compare_offline: bool,
+    /// Largest memory a model's arena may take; `None`: 80 % of the machine's available
+    /// memory. Checked before anything is allocated.
+    pub memory_limit: Option<u64>,
+    /// Worker threads (results do not depend on it).
+    pub threads: usize,
+    /// Continue the stream saved in the output folder (same source; its config and settings
+    /// are used).
+    pub resume: bool,
+    /// Start a fresh stream even though the output folder holds an earlier stream's
+    /// checkpoint, replacing it.
+    pub replace: bool,
+}
+
+/// What a running stream tells its caller; every method does nothing unless implemented.
+pub trait StreamObserver {
+    /// A line saying what was chosen or found and why: the preset, the scene box, the
+    /// checkpoint resumed, what is streamed into what store, the arena's size.
+    fn note(&mut self, _note: &str) {}
+
+    /// The stream begins at arrival `position` (past those a resumed stream had consumed), of
+    /// `arrivals` in all when the source or [`StreamRequest::end_after`] says.
+    fn start(&mut self, _position: u64, _arrivals: Option<u64>) {}
+
+    /// A frame taken, a bad frame, an anytime point or a checkpoint.
+    fn event(&mut self, _event: &Event<'_>) {}
+
+    /// The work after the stream's last frame: `done` of `total` units of `stage` (`done` is 0
+    /// as the stage begins).
+    fn progress(&mut self, _stage: Stage, _done: u64, _total: u64) {}
+}
+
+/// The stages of a finished stream's work after its last frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    /// Scoring every anytime point's snapshot on all held-out views; a unit is a point.
+    FixedSet,
+    /// Training the offline reference (scored on the way); a unit is a step.
+    OfflineReference,
+}
+
+/// How a [`StreamRequest::run`] ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum StreamEnd {
+    /// Stopped by the stop flag or [`StreamRequest::stop_after`]: the checkpoint and the curve
+    /// so far are written; the request run again with `resume` continues the stream.
+    Stopped {
+        /// Arrivals consumed.
+        position: u64,
+        /// Training steps taken, across resumes.
+        step: u32,
+    },
+    /// The source ended (or [`StreamRequest::end_after`] came): everything is scored and
+    /// written.
+    Finished(Box<FinishedStream>),
+}
+
+/// A finished stream's results, as written to its output folder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FinishedStream {
+    /// The stream's record: counts, held-out and bad frames, the anytime curve.
+    pub state: StreamState,
+    /// The anytime curve on all the stream's held-out views, a point per curve point.
+    pub fixed_set: Vec<FixedSetPoint>,
+    /// The offline reference, when asked for.
+    pub offline: Option<OfflineReference>,
+    /// The text of `summary.md`.
+    pub summary: String,
+}
+
+/// The offline reference of a finished stream ([`StreamRequest::compare_offline`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct OfflineReference {
+    /// Its scores at the step counts of the stream's anytime points and at its last step.
+    pub points: Vec<OfflinePoint>,
+    /// Wall time of its training and scoring.
+    pub seconds: f64,
+}
+
+impl StreamRequest {
+    /// Where the stream's checkpoint is (in the output folder).
+    pub fn checkpoint_path(&self) -> PathBuf {
+        self.out.join(CHECKPOINT_FILE)
+    }
+
+    /// Stream from `source` (a source of `kind`) until it ends, `stop` is raised (by a signal
+    /// handler, say: heard within a training step) or [`StreamRequest::stop_after`] steps are
+    /// taken, telling `observer` as it goes. A fresh stream refuses to replace an earlier
+    /// stream's checkpoint unless [`StreamRequest::replace`]; a resumed one continues the
+    /// checkpoint in the output folder, which must be from the same source.
+    ///
+    /// The scene box is the rule of `scene_box::choose_scene_box` less finding one from the
+    /// frames (a stream sees one frame at a time): [`StreamRequest::scene_box`], else the
+    /// config file's, else the source's. The model's arena is checked against the memory
+    /// limit before it is allocated. A stopped stream writes its checkpoint and its curve so
+    /// far; a finished one scores its snapshots on all held-out views, trains the offline
+    /// reference when asked, and writes the curve, `summary.md` and `metrics.json`, each
+    /// atomically.
+    pub fn run(
+        &self,
+        kind: &SourceKind,
+        source: &mut dyn FrameSource,
+        stop: &AtomicBool,
+        observer: &mut dyn StreamObserver,
+    ) -> Result<StreamEnd> {
+        let checkpoint_path = self.checkpoint_path();
+        let (config, mut state) = if self.resume {
+            super::resume(&checkpoint_path, source)?
+        } else {
+            self.fresh(kind, source, &checkpoint_path, observer)?
+        };
+        let executor = RayonExecutor::new(self.threads)?;
+        let plan = MemoryPlan::new(&config);
+        memory::check_arena(
+            Path::new(&format!("the model for {}", source.info().name)),
+            &plan,
+            memory::limit_or_default(self.memory_limit),
+        )?;
+        let mut arena = vec![0u8; plan.total];
+        let mut trainer = Trainer::new(config, &mut arena).map_err(|e| core_error("config", e))?;
+        if self.resume {
+            super::restore(&checkpoint_path, &mut trainer)?;
+            observer.note(&format!(
+                "resuming {} at arrival {} ({} steps done)",
+                checkpoint_path.display(),
+                state.position,
+                trainer.state().step
+            ));
+        }
+        observer.note(&format!(
+            "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
+            source.info().name,
+            config.max_frames,
+            config.replacement,
+            state.settings.steps_per_frame,
+            self.threads,
+            plan.total as f64 / (1 << 20) as f64
+        ));
+        observer.start(state.position, source.info().frames.or(self.end_after));
+        let start = Instant::now();
+        let control = Control {
+            stop,
+            stop_after: self.stop_after,
+            end_after: self.end_after,
+            checkpoint: &checkpoint_path,
+        };
+        let outcome = super::run(
+            &mut trainer,
+            &executor,
+            source,
+            &mut state,
+            &control,
+            &mut |event| observer.event(event),
+        )?;
+        let seconds = start.elapsed().as_secs_f64();
+        if outcome == Outcome::Stopped {
+            write_curve(&self.out, &state.curve, None, None)?;
+            return Ok(StreamEnd::Stopped {
+                position: state.position,
+                step: trainer.state().step,
+            });
+        }
+        let source = &*source;
+        let total = state.curve.len() as u64;
+        observer.progress(Stage::FixedSet, 0, total);
+        let fixed_set = fixed_set_curve(
+            &checkpoint_path,
+            source,
+            &state,
+            &config,
+            &executor,
+            self.memory_limit,
+            &mut |index| observer.progress(Stage::FixedSet, index as u64 + 1, total),
+        )?;
+        let offline = if self.compare_offline {
+            let steps = trainer.state().step;
+            observer.progress(Stage::OfflineReference, 0, steps as u64);
+            let started = Instant::now();
+            let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
+            let points = offline_reference(
+                source,
+                &state,
+                &config,
+                steps,
+                &at_steps,
+                &executor,
+                &mut |step| {
+                    observer.progress(Stage::OfflineReference, step as u64 + 1, steps as u64)
+                },
+            )?;
+            let seconds = started.elapsed().as_secs_f64();
+            Some(OfflineReference { points, seconds })
+        } else {
+            None
+        };
+        write_curve(
+            &self.out,
+            &state.curve,
+            Some(&fixed_set),
+            offline.as_ref().map(|o| o.points.as_slice()),
+        )?;
+        let summary = summary(&state, &trainer, seconds, offline.as_ref());
+        io::write_atomic(&self.out.join("summary.md"), summary.as_bytes())?;
+        figures(&state, &trainer, seconds, offline.as_ref()).write(&self.out)?;
+        Ok(StreamEnd::Finished(Box::new(FinishedStream {
+            state,
+            fixed_set,
+            offline,
+            summary,
+        })))
+    }
+
+    /// A fresh stream's config and state: the model chosen for `kind`, with the scene box by
+    /// the rule, fitted to the source (its frame size, and its frames or `end_after` for the
+    /// schedule). Refuses to replace an earlier stream's checkpoint unless `replace`.
+    fn fresh(
+        &self,
+        kind: &SourceKind,
+        source: &dyn FrameSource,
+        checkpoint_path: &Path,
+        observer: &mut dyn StreamObserver,
+    ) -> Result<(Config, StreamState)> {
+        io::check_fresh_checkpoint(checkpoint_path, self.replace, "stream")?;
+        let chosen = self.model.choose(kind)?;
+        observer.note(&chosen.note);
+        let mut info = source.info().clone();
+        info.frames = info.frames.or(self.end_after);
+        let config_file = self.model.config_file.as_deref();
+        if let Some(stated) = pipeline::stated_box(self.scene_box, config_file)? {
+            info.scene_box = Some((stated.min, stated.max));
+            observer.note(&format!(
+                "scene box {}, given by {}",
+                box_text(stated.min, stated.max),
+                stated.by
+            ));
+        } else if let Some((min, max)) = info.scene_box {
+            observer.note(&format!(
+                "scene box {}, from the source (truth.json or the format)",
+                box_text(min, max)
+            ));
+        }
+        let config = stream_config(
+            &chosen.config,
+            &info,
+            self.store,
+            self.replacement,
+            self.settings.steps_per_frame,
+        )?;
+        let capacity = config.max_frames as usize;
+        let state = StreamState::new(self.settings.clone(), capacity, source.info());
+        Ok((config, state))
+    }
+}
+
+/// The summary's models for `metrics.json`: the streamed model at its last held-out score,
+/// and the offline reference when there is one (no per-view figures: a stream keeps means).
+fn figures(
+    state: &StreamState,
+    trainer: &Trainer<'_>,
+    seconds: f64,
+    offline: Option<&OfflineReference>,
+) -> Figures {
+    let mut models = Vec::new();
+    if let Some(last) = state.curve.last() {
+        models.push(ModelFigures {
+            name: "streamed".into(),
+            mean: last.metrics(),
+            views: Vec::new(),
+            training: Some(TrainingFigures {
+                steps: trainer.state().step as u64,
+                steps_skipped: trainer.state().skipped as u64,
+                seconds,
+                // This session's steps (a resumed stream's since it resumed, as `train`'s).
+                samples_per_ray: if state.session.steps > 0 {
+                    state.session.samples_per_ray()
+                } else {
+                    f64::NAN
+                },
+            }),
+            mean_at: None,
+            pose_refinement: None,
+        });
+    }
+    if let Some(last) = offline.and_then(|o| o.points.last()) {
+        models.push(ModelFigures {
+            name: "offline reference".into(),
+            mean: last.metrics,
+            views: Vec::new(),
+            training: None,
+            mean_at: None,
+            pose_refinement: None,
+        });
+    }
+    Figures::new("stream", models)
+}
+
+/// The text of `summary.md`: the arrivals and what became of them, the steps and wall time,
+/// the bad frames, the streamed model's last held-out score, the offline reference's, and the
+/// resident memory once the store was full and at the end.
+fn summary(
+    state: &StreamState,
+    trainer: &Trainer<'_>,
+    seconds: f64,
+    offline: Option<&OfflineReference>,
+) -> String {
+    let mut text = String::from("# Stream summary\n\n");
+    let _ = writeln!(
+        text,
+        "- {} arrivals: {} usable ({} held out, {} offered to the store: {} stored, {} turned away), {} bad",
+        state.position,
+        state.usable,
+        state.held_out.len(),
+        state.offered,
+        state.stored,
+        state.rejected,
+        state.bad.len()
+    );
+    let _ = writeln!(
+        text,
+        "- {} frames held at the end, {} training steps, {:.1} s wall time ({:.2} s per arrival)",
+        trainer.frames().len(),
+        trainer.state().step,
+        seconds,
+        seconds / state.position.max(1) as f64
+    );
+    for bad in &state.bad {
+        let _ = writeln!(text, "- {bad}");
+    }
+    if let Some(last) = state.curve.last() {
+        let _ = writeln!(
+            text,
+            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views",
+            last.psnr, last.psnr_right, last.psnr_foreground, last.ssim, last.held_out_views
+        );
+    }
+    if let Some((reference, last)) = offline.and_then(|o| Some((o, o.points.last()?))) {
+        // The last point's seconds are the training time; the reference's add its scoring.
+        let metrics = &last.metrics;
+        let _ = writeln!(
+            text,
+            "- offline reference (all training frames at once, same steps, {:.1} s of training, {:.1} s with scoring): held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}",
+            last.seconds,
+            reference.seconds,
+            metrics.psnr_full,
+            metrics.psnr_right,
+            metrics.psnr_foreground,
+            metrics.ssim_full
+        );
+    }
+    if let (Some(first), Some(last)) = (
+        state
+            .curve
+            .iter()
+            .find(|p| p.frames_seen >= trainer.config().max_frames as u64),
+        state.curve.last(),
+    ) {
+        let _ = writeln!(
+            text,
+            "- resident memory: {:.1} MiB at {} frames seen, {:.1} MiB at {}",
+            first.rss_mib, first.frames_seen, last.rss_mib, last.frames_seen
+        );
+    }
+    text
+}
