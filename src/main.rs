@@ -6,7 +6,8 @@ mod commands;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use commands::{
-    ablate, bench, demo, eval, export, reference, render, simulate, stream, sweep, tradeoff, train,
+    ablate, bench, demo, eval, export, paper, reference, render, simulate, stream, sweep, tradeoff,
+    train,
 };
 
 #[derive(Parser)]
@@ -44,6 +45,9 @@ enum Command {
     /// What accuracy costs in time: every knob's variants trained and scored while they
     /// train (anytime curves), Pareto plots of quality against time and memory.
     Tradeoff(tradeoff::TradeoffArgs),
+    /// The paper's tables: the main table on the three training sets, the image-count study
+    /// and the pose-noise sweeps, run as sweeps in one folder and gathered into paper.md.
+    Paper(paper::PaperArgs),
     /// Shell completions, man pages and the docs book's reference chapters, generated from
     /// the program's own definitions.
     Docs(reference::DocsArgs),
@@ -75,6 +79,7 @@ fn main() {
         Command::Stream(args) => stream::run(&args),
         Command::Sweep(args) => sweep::run(&args),
         Command::Tradeoff(args) => tradeoff::run(&args),
+        Command::Paper(args) => paper::run(&args),
         Command::Docs(args) => reference::run(&args, cli_command()),
     };
     if let Err(e) = result {

@@ -1989,6 +1989,58 @@ fn sweep_results_of_another_description_are_refused_not_reused() {
     assert!(!missing.exists());
 }
 
+/// A sweep's records name the text of the scene they simulated: after the scene file (or a
+/// built-in preset, with a new binary) changes, its old records are refused by `sweep run` and
+/// `sweep collect` naming the fingerprint, not reused as results of the new scene.
+#[test]
+fn sweep_results_of_a_scene_whose_text_changed_are_refused() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let scratch = Scratch::new("sweep-scene-changed");
+    let scene = scratch.path("scene.toml");
+    let scene_text = std::fs::read_to_string(root().join("scenes/synthetic.toml")).unwrap();
+    std::fs::write(&scene, &scene_text).unwrap();
+    let description = scratch.path("sweep.toml");
+    std::fs::write(
+        &description,
+        ONE_TASK_SWEEP.replace("scene = \"synthetic\"", "scene = \"scene.toml\""),
+    )
+    .unwrap();
+    let out = scratch.path("out");
+    let sweep = |command: &str| {
+        let mut command = orbit_nerf(&["sweep", command, path_str(&description)]);
+        command.args(["--out", path_str(&out)]);
+        command.output().unwrap()
+    };
+    let result = sweep("run");
+    assert!(result.status.success(), "{}", text(&result));
+    let record = out.join("tasks/0/result.json");
+    // The same text collects; another text does not.
+    assert!(sweep("collect").status.success());
+    let before = folder_bytes(&out);
+    let changed = scene_text.replace("deg_per_frame = 0.9", "deg_per_frame = 0.5");
+    assert_ne!(changed, scene_text);
+    std::fs::write(&scene, changed).unwrap();
+    for command in ["run", "collect"] {
+        let result = sweep(command);
+        assert_clear_error(
+            &format!("sweep {command} after the scene changed"),
+            &result,
+            &[
+                path_str(&record),
+                "scenes_fnv1a",
+                "the scene's text has changed",
+            ],
+        );
+        assert_eq!(
+            folder_bytes(&out),
+            before,
+            "sweep {command}: the folder changed"
+        );
+    }
+}
+
 /// `tradeoff --vary size=N` above the data's images (issue 42, eighth group): frames are never
 /// upsampled, so the variant would silently repeat the reference. Refused before anything is
 /// trained or written, naming the flag, the value and the data's size; the same size of a

@@ -489,7 +489,7 @@ fn a_separate_test_set_is_scored_and_never_trained_on() {
     let (ok, text) = orbit_nerf(&[
         "simulate",
         "--scene",
-        "sunlamp",
+        "lightbox-test",
         "--frames",
         "6",
         "--size",

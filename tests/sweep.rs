@@ -557,3 +557,68 @@ fn a_tradeoff_on_a_separate_test_set_scores_every_test_view() {
     assert!(report.contains("separate test set `test`"), "{report}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `orbit-nerf paper --tables main`: each training set's description written into the folder
+/// and run there, `paper.md`'s main table holds a row per training set and model scored on
+/// every view of the one separate test set, and a rerun continues (nothing trained again). A
+/// replacement for a sweep no table asked for is refused naming the flag.
+#[test]
+fn the_paper_command_runs_the_main_table_on_each_training_set() {
+    let dir = temp_dir("paper");
+    let out = dir.join("out");
+    let mut flags = Vec::new();
+    for scene in ["synthetic", "lightbox", "sunlamp"] {
+        let path = dir.join(format!("{scene}.toml"));
+        let text = format!(
+            "scene = \"{scene}\"\nframes = 6\ntest_scene = \"lightbox-test\"\ntest_frames = 3\nsize = 32\nconfig = \"tiny\"\nsteps = 6\nfit_steps = 2\n\n[[variants]]\nname = \"baseline\"\nset = {{ embedding_dim = 0 }}\n\n[[variants]]\nname = \"ours + pose\"\nset = {{ embedding_dim = 8, pose_correction = true }}\n"
+        );
+        std::fs::write(&path, text).unwrap();
+        flags.push(format!("main-{scene}={}", path.display()));
+    }
+    let paper = |extra: &[&str]| {
+        let mut args = vec![
+            "paper",
+            "--tables",
+            "main",
+            "--threads",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        for flag in &flags {
+            args.extend(["--description", flag.as_str()]);
+        }
+        args.extend(extra);
+        let run = orbit_nerf(&args).output().unwrap();
+        (run.status.success(), output_text(&run))
+    };
+    let (ok, text) = paper(&[]);
+    assert!(ok, "{text}");
+    let report = std::fs::read_to_string(out.join("paper.md")).unwrap();
+    assert!(
+        report.contains("3 views of `lightbox-test` (exact poses)"),
+        "{report}"
+    );
+    for scene in ["synthetic", "lightbox", "sunlamp"] {
+        assert!(out.join(format!("main-{scene}.toml")).is_file());
+        for model in ["baseline", "ours + pose"] {
+            let row = format!("| `{scene}` ");
+            assert!(
+                report.lines().any(|l| l.starts_with(&row)
+                    && l.contains(&format!("| {model} "))
+                    && l.contains("| 3 ")),
+                "no row for {scene}, {model}:\n{report}"
+            );
+        }
+    }
+    let (ok, text) = paper(&[]);
+    assert!(
+        ok && text.contains("2 finished earlier (skipped), 0 to run"),
+        "{text}"
+    );
+    let (ok, text) = paper(&["--description", "pose-noise=x.toml"]);
+    assert!(
+        !ok && text.contains("--description pose-noise=x.toml"),
+        "{text}"
+    );
+}

@@ -6,6 +6,7 @@ pub mod bench;
 pub mod demo;
 pub mod eval;
 pub mod export;
+pub mod paper;
 pub mod reference;
 pub mod render;
 pub mod simulate;

@@ -475,6 +475,16 @@ impl Scene {
         Scene::parse(&text, path.to_path_buf(), vec![scene_dir, cwd])
     }
 
+    /// The text `Scene::load` parses for `name_or_path`: a preset's built-in text or the
+    /// file's (what a sweep record fingerprints, so a changed preset or file is noticed).
+    pub fn text(name_or_path: &str) -> Result<String> {
+        match PRESETS.iter().find(|(name, _)| *name == name_or_path) {
+            Some((_, text)) => Ok((*text).to_string()),
+            None => std::fs::read_to_string(name_or_path)
+                .map_err(|e| HostError::io(Path::new(name_or_path), e)),
+        }
+    }
+
     /// Parse and check scene text; `origin` names it in errors.
     pub fn parse(text: &str, origin: PathBuf, search_dirs: Vec<PathBuf>) -> Result<Scene> {
         let table: toml::Table = toml::from_str(text)

@@ -36,6 +36,7 @@
 //! budgets_s = [30, 60, 300]    # and the best variant within each training time
 //! ```
 
+pub mod paper;
 pub mod results;
 pub mod run;
 #[cfg(feature = "slurm")]

@@ -117,6 +117,11 @@ pub struct TaskSettings {
     pub scene_box: Option<[[f32; 3]; 2]>,
     /// Every field of the task's config, as a config file names it.
     pub config: serde_json::Map<String, serde_json::Value>,
+    /// FNV-1a of the simulated scenes' text (the training scene's, then the test scene's),
+    /// so a record of a preset or scene file that has changed since is not taken for one of
+    /// the current text; `None` for a dataset folder and in records that predate it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scenes_fnv1a: Option<String>,
 }
 
 impl TaskSettings {
@@ -152,8 +157,22 @@ impl TaskSettings {
             masks: sweep.masks,
             scene_box: sweep.scene_box.map(|(min, max)| [min, max]),
             config: config_fields(&task.config),
+            scenes_fnv1a: scenes_fingerprint(sweep),
         }
     }
+}
+
+/// FNV-1a of the text of the sweep's simulated scenes (training, then test); `None` when it
+/// simulates none or a scene's text cannot be read (the task reports that itself).
+fn scenes_fingerprint(sweep: &Sweep) -> Option<String> {
+    let mut texts = Vec::new();
+    if let Source::Scene(scene) = &sweep.source {
+        texts.push(crate::sim::Scene::text(scene).ok()?);
+    }
+    if let Some(TestSet::Scene { scene, .. }) = &sweep.test {
+        texts.push(crate::sim::Scene::text(scene).ok()?);
+    }
+    (!texts.is_empty()).then(|| format!("{:016x}", fnv1a(texts.join("\n").as_bytes())))
 }
 
 /// The config's fields as the record's JSON holds them (through the text, so that a field
@@ -244,6 +263,14 @@ pub fn differences(
             settings.masks.to_string(),
             asked.masks.to_string(),
         );
+        // Records from before the fingerprint are compared on the scene's name alone.
+        if let (Some(recorded), Some(asked)) = (&settings.scenes_fnv1a, &asked.scenes_fnv1a) {
+            differ(
+                "settings.scenes_fnv1a (the scene's text has changed)",
+                recorded.clone(),
+                asked.clone(),
+            );
+        }
         let scene_box = |b: Option<[[f32; 3]; 2]>| b.map_or("none".into(), |b| format!("{b:?}"));
         differ(
             "settings.scene_box",

@@ -1,0 +1,75 @@
+//! `orbit-nerf paper`: the paper's tables (the main table on the three training sets, the
+//! image-count study, the pose-noise sweeps) as sweeps run in one folder and gathered into
+//! `paper.md` (`orbit_nerf_host::sweep::paper`).
+
+use super::{Fallible, parse_threads};
+use orbit_nerf_host::sweep::paper::{self, PaperSweep, Table};
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args, Debug)]
+pub struct PaperArgs {
+    /// Output folder: a folder per sweep with its description beside it (`main-synthetic`,
+    /// `main-lightbox`, `main-sunlamp`, `image-counts`, `pose-noise`), and paper.md. Rerun the
+    /// same command to continue unfinished tasks.
+    #[arg(long, default_value = "runs/paper")]
+    out: PathBuf,
+    /// The tables to make (default: all three).
+    #[arg(long, value_enum, value_delimiter = ',', default_values = ["main", "image-counts", "pose-noise"])]
+    tables: Vec<TableArg>,
+    /// Replace a built-in description, NAME=FILE (NAME: main-synthetic, main-lightbox,
+    /// main-sunlamp, image-counts, pose-noise); repeat for more. The built-in ones are the
+    /// repository's sweeps/paper-main-*.toml, image-counts-quick.toml and paper-pose-noise.toml.
+    #[arg(long, value_name = "NAME=FILE")]
+    description: Vec<String>,
+    /// Tasks run at once (default 1: tasks sharing the cores would distort each other's
+    /// times).
+    #[arg(long, default_value_t = 1, value_parser = parse_threads)]
+    jobs: usize,
+    /// Threads of each task (default: the cores shared among the jobs; results do not depend
+    /// on it).
+    #[arg(long, value_parser = parse_threads)]
+    threads: Option<usize>,
+}
+
+/// `--tables`' values.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum TableArg {
+    Main,
+    ImageCounts,
+    PoseNoise,
+}
+
+pub fn run(args: &PaperArgs) -> Fallible<()> {
+    let tables: Vec<Table> = (args.tables.iter())
+        .map(|t| match t {
+            TableArg::Main => Table::Main,
+            TableArg::ImageCounts => Table::ImageCounts,
+            TableArg::PoseNoise => Table::PoseNoise,
+        })
+        .collect();
+    let mut sweeps = PaperSweep::built_in(&tables);
+    for given in &args.description {
+        let (name, file) = given
+            .split_once('=')
+            .ok_or_else(|| format!("--description {given}: expected NAME=FILE"))?;
+        let names: Vec<String> = sweeps.iter().map(|s| s.name.clone()).collect();
+        let sweep = (sweeps.iter_mut()).find(|s| s.name == name).ok_or_else(|| {
+            format!(
+                "--description {given}: no table asked for has a sweep `{name}` (these have: {})",
+                names.join(", ")
+            )
+        })?;
+        sweep.text = std::fs::read_to_string(file)
+            .map_err(|e| format!("--description {given}: {file}: {e}"))?;
+    }
+    let exe = std::env::current_exe()?;
+    let say = |line: String| println!("{line}");
+    let mut run_local = |description: &Path, out: &Path| {
+        let jobs = (Some(args.jobs), args.threads);
+        orbit_nerf_host::sweep::run::run_local(&exe, description, out, jobs, &say)
+    };
+    let text = paper::run(&sweeps, &args.out, &mut run_local, &mut |line| say(line))?;
+    println!("{text}");
+    println!("paper.md in {}", args.out.display());
+    Ok(())
+}
