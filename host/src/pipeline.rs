@@ -849,6 +849,27 @@ impl Pipeline {
         ]
     }
 
+    /// `plan` as text: the limit, then each stage's parts and note.
+    pub fn memory_plan_text(&self, plan: &[PlannedStage]) -> String {
+        let limit = memory::limit_or_default(self.memory_limit);
+        let mut text = format!(
+            "memory plan, limit {}:",
+            limit.map_or(
+                "none (the machine's memory is unknown)".into(),
+                memory::human
+            )
+        );
+        for stage in plan {
+            text.push_str(&format!(
+                "\n  {}: {}\n    {}",
+                stage.name,
+                memory::describe(&stage.parts),
+                stage.note
+            ));
+        }
+        text
+    }
+
     /// Check every stage of `plan` against the run's memory limit (or the default share of
     /// the machine's memory): the error names the first stage that does not fit.
     pub fn check_memory_plan(&self, plan: &[PlannedStage]) -> Result<()> {

@@ -104,6 +104,28 @@ pub fn count_in(text: &str, range: RangeInclusive<usize>) -> Result<usize, Strin
     }
 }
 
+/// A direction `x,y,z`: three finite numbers within +-1e6, not all zero.
+pub fn direction(text: &str) -> Result<[f32; 3], String> {
+    let values: Vec<f32> = text
+        .split(',')
+        .map(|v| number_in(v, -1e6..=1e6).map(|v| v as f32))
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if x != 0.0 || y != 0.0 || z != 0.0 => Ok([x, y, z]),
+        [_, _, _] => Err("the zero vector has no direction".into()),
+        _ => Err(format!("`{text}`: expected x,y,z")),
+    }
+}
+
+/// A number above 0 and within `1e-9..=1e9` (a density threshold, a scale).
+pub fn positive(text: &str) -> Result<f32, String> {
+    number_in(text, 1e-9..=1e9).and_then(|v| {
+        (v > 0.0)
+            .then_some(v as f32)
+            .ok_or_else(|| "must be greater than 0".into())
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

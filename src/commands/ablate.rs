@@ -3,13 +3,12 @@
 //! image-count study (run as a sweep).
 
 use super::{
-    FIT_STEPS, Fallible, SceneBox, machine_threads, parse_scene_box, parse_threads, preset_config,
-    preset_parser,
+    FIT_STEPS, Fallible, SceneBox, machine_threads, parse_scene_box, parse_threads, preset_parser,
 };
 use orbit_nerf_core::Config;
 use orbit_nerf_host::ablation_report::{self, AblationData};
 use orbit_nerf_host::formats::Format;
-use orbit_nerf_host::pipeline::Overrides;
+use orbit_nerf_host::pipeline::{self, Overrides};
 use orbit_nerf_host::presets;
 use orbit_nerf_host::sweep::studies::{self, ImageCounts, StudyData};
 use std::path::PathBuf;
@@ -158,12 +157,10 @@ fn base_config(args: &AblateArgs) -> Fallible<Config> {
     } else {
         "a simulated scene"
     };
-    let mut config = preset_config(
-        args.preset.as_deref(),
-        presets::SPACECRAFT,
-        data,
-        args.config.as_deref(),
-    )?;
+    let (preset, file) = (args.preset.as_deref(), args.config.as_deref());
+    let chosen = pipeline::preset_config(preset, presets::SPACECRAFT, data, file)?;
+    println!("{}", chosen.note);
+    let mut config = chosen.config;
     let steps = Overrides {
         steps: args.steps,
         ..Overrides::default()

@@ -1,7 +1,7 @@
 //! `orbit-nerf bench`: training throughput (samples/s, rays/s) on a fixed scene and seed, and
 //! with `--profile` where a step's and a rendered view's time goes, stage by stage.
 
-use super::{CliResult, Fallible, choose_box, config_for_data, open_dataset, preset_parser};
+use super::{CliResult, Fallible, choose_box, open_dataset, preset_parser};
 use clap::Args;
 use orbit_nerf_core::Trainer;
 use orbit_nerf_host::pipeline::{self, DataSettings, SplitData};
@@ -72,7 +72,10 @@ pub fn run(args: &BenchArgs) -> CliResult {
             "8 lanes per instruction or fewer"
         }
     );
-    let mut base = config_for_data(args.preset.as_deref(), &args.data, args.config.as_deref())?;
+    let chosen =
+        pipeline::choose_config(args.preset.as_deref(), &args.data, args.config.as_deref())?;
+    println!("{}", chosen.note);
+    let mut base = chosen.config;
     let settings = DataSettings {
         size: args.size,
         ..DataSettings::new(&args.data)

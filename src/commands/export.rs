@@ -47,17 +47,17 @@ pub struct ExportArgs {
     /// size). Default: where a 1/128 of the box diagonal becomes half opaque (ln 2 * 128 /
     /// diagonal in those units; 17.1 on a cubic box); lower it for a fuller surface, raise it
     /// for a tighter one.
-    #[arg(long, value_parser = parse_threshold, allow_hyphen_values = true)]
+    #[arg(long, value_parser = values::positive, allow_hyphen_values = true)]
     threshold: Option<f32>,
     /// Also write a picture of the mesh to this PNG (orthographic, 512 px, seen from
     /// --preview-from towards the box centre, shaded vertex colours).
     #[arg(long)]
     preview: Option<PathBuf>,
     /// Direction from the centre to the preview's viewer, x,y,z (world axes).
-    #[arg(long, default_value = "1,-1,0.8", value_parser = parse_direction, allow_hyphen_values = true)]
+    #[arg(long, default_value = "1,-1,0.8", value_parser = values::direction, allow_hyphen_values = true)]
     preview_from: [f32; 3],
     /// The preview's up direction, x,y,z (world axes).
-    #[arg(long, default_value = "0,0,1", value_parser = parse_direction, allow_hyphen_values = true)]
+    #[arg(long, default_value = "0,0,1", value_parser = values::direction, allow_hyphen_values = true)]
     preview_up: [f32; 3],
     /// Score the surface against a simulated scene's true shape (a preset such as lightbox,
     /// or a scene file): prints the symmetric Chamfer distance (mean, 95th percentile).
@@ -78,26 +78,6 @@ pub struct ExportArgs {
 
 fn parse_resolution(text: &str) -> Result<u32, String> {
     values::count_in(text, 8..=geometry::extract::MAX_RESOLUTION as usize).map(|v| v as u32)
-}
-
-fn parse_threshold(text: &str) -> Result<f32, String> {
-    values::number_in(text, 1e-9..=1e9).and_then(|v| {
-        (v > 0.0)
-            .then_some(v as f32)
-            .ok_or_else(|| "must be greater than 0".into())
-    })
-}
-
-fn parse_direction(text: &str) -> Result<[f32; 3], String> {
-    let values: Vec<f32> = text
-        .split(',')
-        .map(|v| values::number_in(v, -1e6..=1e6).map(|v| v as f32))
-        .collect::<Result<_, _>>()?;
-    match values[..] {
-        [x, y, z] if x != 0.0 || y != 0.0 || z != 0.0 => Ok([x, y, z]),
-        [_, _, _] => Err("the zero vector has no direction".into()),
-        _ => Err(format!("`{text}`: expected x,y,z")),
-    }
 }
 
 pub fn run(command: &ExportCommand) -> CliResult {

@@ -17,7 +17,6 @@ pub mod train;
 
 use clap::Args;
 use indicatif::ProgressStyle;
-use orbit_nerf_core::Config;
 use orbit_nerf_host::dataset::Dataset;
 use orbit_nerf_host::memory::Part;
 use orbit_nerf_host::pipeline::{
@@ -143,28 +142,6 @@ fn preset_parser() -> clap::builder::PossibleValuesParser {
     presets::PRESETS
         .map(|p| clap::builder::PossibleValue::new(p.name).help(p.about))
         .into()
-}
-
-/// The config a run starts from: the preset `chosen` by `--preset`, else `default`, the
-/// preset for the run's data (`data` says what data); with a config file's fields on top.
-/// Prints one line saying which and why.
-fn preset_config(
-    chosen: Option<&str>,
-    default: &'static str,
-    data: &str,
-    file: Option<&Path>,
-) -> Fallible<Config> {
-    let chosen = pipeline::preset_config(chosen, default, data, file)?;
-    println!("{}", chosen.note);
-    Ok(chosen.config)
-}
-
-/// [`preset_config`] for a run on the dataset `data`: the preset for its format, told from the
-/// folder's layout (nothing is read), unless `chosen`.
-fn config_for_data(chosen: Option<&str>, data: &Path, file: Option<&Path>) -> Fallible<Config> {
-    let chosen = pipeline::choose_config(chosen, data, file)?;
-    println!("{}", chosen.note);
-    Ok(chosen.config)
 }
 
 /// A scene box as min and max corners.

@@ -49,18 +49,7 @@ pub fn run(args: &PaperArgs) -> Fallible<()> {
         .collect();
     let mut sweeps = PaperSweep::built_in(&tables);
     for given in &args.description {
-        let (name, file) = given
-            .split_once('=')
-            .ok_or_else(|| format!("--description {given}: expected NAME=FILE"))?;
-        let names: Vec<String> = sweeps.iter().map(|s| s.name.clone()).collect();
-        let sweep = (sweeps.iter_mut()).find(|s| s.name == name).ok_or_else(|| {
-            format!(
-                "--description {given}: no table asked for has a sweep `{name}` (these have: {})",
-                names.join(", ")
-            )
-        })?;
-        sweep.text = std::fs::read_to_string(file)
-            .map_err(|e| format!("--description {given}: {file}: {e}"))?;
+        PaperSweep::replace(&mut sweeps, given)?;
     }
     let exe = std::env::current_exe()?;
     let say = |line: String| println!("{line}");

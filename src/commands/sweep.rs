@@ -6,7 +6,7 @@
 use super::Fallible;
 use orbit_nerf_host::sweep::Sweep;
 use orbit_nerf_host::sweep::run::{self, TaskOutcome};
-use orbit_nerf_host::sweep::slurm::{self, Resources, Submission};
+use orbit_nerf_host::sweep::slurm::{self, Resources};
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
@@ -133,33 +133,8 @@ pub fn run(args: &SweepArgs) -> Fallible<()> {
                 partition: partition.clone(),
                 time: time.clone(),
             };
-            match slurm::submit(&exe, description, out, &resources, *no_submit)? {
-                Submission::NothingToRun => println!(
-                    "every task has a result: nothing to submit; merge them with `orbit-nerf sweep collect {} --out {}`",
-                    description.display(),
-                    out.display()
-                ),
-                Submission::Script {
-                    script,
-                    pending,
-                    tasks,
-                    array,
-                    job,
-                } => {
-                    println!(
-                        "wrote {} ({pending} of {tasks} tasks: --array={array})",
-                        script.display()
-                    );
-                    match job {
-                        None => println!("submit it with `sbatch {}`", script.display()),
-                        Some(job) => println!(
-                            "submitted job array {job}; when it has finished: orbit-nerf sweep collect {} --out {}",
-                            description.display(),
-                            out.display()
-                        ),
-                    }
-                }
-            }
+            let submission = slurm::submit(&exe, description, out, &resources, *no_submit)?;
+            println!("{}", submission.report(description, out));
         }
         SweepCommand::Collect { description, out } => {
             let text = orbit_nerf_host::sweep::results::collect(&Sweep::read(description)?, out)?;

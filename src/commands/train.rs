@@ -9,11 +9,11 @@ use clap::Args;
 use indicatif::ProgressBar;
 use orbit_nerf_core::{StepReport, Trainer};
 use orbit_nerf_host::geometry::extract::SurfaceOptions;
+use orbit_nerf_host::io;
 use orbit_nerf_host::pipeline::{
     self, CHECKPOINT_FILE, Flow, Observer, Outcome, Pipeline, TrainOptions,
 };
 use orbit_nerf_host::progress::SessionProgress;
-use orbit_nerf_host::{io, memory};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -110,17 +110,7 @@ pub fn run(args: &TrainArgs) -> CliResult {
         Outcome::Finished(run) => {
             println!("{}", progress.session.summary());
             if let Some(poses) = &run.pose_refinement {
-                let summary = &poses.summary;
-                println!(
-                    "pose uncertainty (1 sigma, mean over {} frames): attitude {} deg, position {}",
-                    summary.frames,
-                    summary
-                        .rotation_sigma_deg_mean
-                        .map_or("n/a".into(), |v| format!("{v:.3}")),
-                    summary
-                        .position_sigma_mean
-                        .map_or("n/a".into(), |v| format!("{v:.4}"))
-                );
+                println!("{}", poses.summary_line());
             }
             print_scores(&run.scores);
             println!(
@@ -135,19 +125,8 @@ pub fn run(args: &TrainArgs) -> CliResult {
 /// Print the run's memory plan against its limit (`train --dry-run`); fail naming the first
 /// stage that does not fit.
 fn print_memory_plan(pipeline: &Pipeline) -> CliResult {
-    let limit = memory::limit_or_default(pipeline.memory_limit);
     let plan = pipeline.memory_plan(&SurfaceOptions::default());
-    println!(
-        "memory plan, limit {}:",
-        limit.map_or(
-            "none (the machine's memory is unknown)".into(),
-            memory::human
-        )
-    );
-    for stage in &plan {
-        println!("  {}: {}", stage.name, memory::describe(&stage.parts));
-        println!("    {}", stage.note);
-    }
+    println!("{}", pipeline.memory_plan_text(&plan));
     pipeline.check_memory_plan(&plan)?;
     println!("dry run: every stage fits; nothing was trained or written");
     Ok(())

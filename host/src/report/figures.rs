@@ -61,6 +61,19 @@ pub struct PoseRefinementFigures {
     pub frames: Vec<FramePose>,
 }
 
+impl PoseRefinementFigures {
+    /// The mean 1-sigma attitude and position of the training frames, in one line.
+    pub fn summary_line(&self) -> String {
+        let s = &self.summary;
+        format!(
+            "pose uncertainty (1 sigma, mean over {} frames): attitude {} deg, position {}",
+            s.frames,
+            (s.rotation_sigma_deg_mean).map_or("n/a".into(), |v| format!("{v:.3}")),
+            (s.position_sigma_mean).map_or("n/a".into(), |v| format!("{v:.4}"))
+        )
+    }
+}
+
 /// One held-out view's metrics, its mean samples per ray and seconds (fit and render).
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewFigures {

@@ -61,6 +61,28 @@ impl PaperSweep {
         sweeps
     }
 
+    /// Replace the description of the sweep `NAME` among `sweeps` with the file's text, as
+    /// `--description NAME=FILE` gives them (errors name the flag).
+    pub fn replace(sweeps: &mut [PaperSweep], given: &str) -> Result<()> {
+        let flag = format!("--description {given}");
+        let (name, file) = (given.split_once('='))
+            .ok_or_else(|| HostError::invalid(&flag, "expected NAME=FILE"))?;
+        let names: Vec<String> = sweeps.iter().map(|s| s.name.clone()).collect();
+        let sweep = (sweeps.iter_mut())
+            .find(|s| s.name == name)
+            .ok_or_else(|| {
+                HostError::invalid(
+                    &flag,
+                    format!(
+                        "no table asked for has a sweep `{name}` (these have: {})",
+                        names.join(", ")
+                    ),
+                )
+            })?;
+        sweep.text = std::fs::read_to_string(file).map_err(|e| HostError::io(file, e))?;
+        Ok(())
+    }
+
     /// The description file in the output folder `out`.
     fn description(&self, out: &Path) -> PathBuf {
         out.join(format!("{}.toml", self.name))

@@ -158,6 +158,41 @@ pub enum Submission {
     },
 }
 
+impl Submission {
+    /// What was done and what to do next, for the description at `description` and the
+    /// sweep folder `out`.
+    pub fn report(&self, description: &Path, out: &Path) -> String {
+        let collect = format!(
+            "orbit-nerf sweep collect {} --out {}",
+            description.display(),
+            out.display()
+        );
+        match self {
+            Submission::NothingToRun => {
+                format!("every task has a result: nothing to submit; merge them with `{collect}`")
+            }
+            Submission::Script {
+                script,
+                pending,
+                tasks,
+                array,
+                job,
+            } => {
+                let next = match job {
+                    None => format!("submit it with `sbatch {}`", script.display()),
+                    Some(job) => {
+                        format!("submitted job array {job}; when it has finished: {collect}")
+                    }
+                };
+                format!(
+                    "wrote {} ({pending} of {tasks} tasks: --array={array})\n{next}",
+                    script.display()
+                )
+            }
+        }
+    }
+}
+
 /// Write the Slurm array script of the unfinished tasks to `<out>/sweep.sbatch`, running
 /// `exe sweep run-task` per task, and submit it with `sbatch` unless `no_submit`. The binary,
 /// the description and `out` must be on a filesystem every node sees (paths are made
