@@ -273,159 +273,153 @@ impl Experiment<'_> {
                 ),
             ));
         }
-        let plan = MemoryPlan::new(&config);
-        // Checked against the default share of the machine's memory before it is allocated.
-        crate::memory::check_arena(
-            &dataset.source,
-            &plan,
-            crate::memory::limit_or_default(None),
-        )?;
-        let mut arena = vec![0u8; plan.total];
-        let mut trainer = Trainer::new(config, &mut arena)
-            .map_err(|e| HostError::invalid(&dataset.source, e.to_string()))?;
-        train::load_frames(&mut trainer, train_idx.iter().map(|&i| &dataset.frames[i]))?;
-        // The held-out views' scores and their mean, at the labels, at the exact poses
-        // (`poses`) or aligned.
-        let score_at = |trainer: &mut Trainer<'_>,
-                        poses: Option<&[Pose]>,
-                        align: bool|
-         -> Result<(Vec<train::ViewScore>, ViewMetrics)> {
-            let scores = train::evaluate_at(
+        let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
+        // The arena is checked against the default share of the machine's memory first.
+        crate::pipeline::with_trainer(&dataset.source, (config, None), &[], &frames, |trainer| {
+            // The held-out views' scores and their mean, at the labels, at the exact poses
+            // (`poses`) or aligned.
+            let score_at = |trainer: &mut Trainer<'_>,
+                            poses: Option<&[Pose]>,
+                            align: bool|
+             -> Result<(Vec<train::ViewScore>, ViewMetrics)> {
+                let scores = train::evaluate_at(
+                    trainer,
+                    &executor,
+                    dataset,
+                    self.test_idx,
+                    poses,
+                    (self.fit_steps, align),
+                    None,
+                )?;
+                let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
+                Ok((scores, report::mean_metrics(&per_view)))
+            };
+            let score = |trainer: &mut Trainer<'_>| score_at(trainer, None, false);
+            let mut so_far = FiguresSoFar {
+                train_seconds: 0.0,
+                rays: 0,
+                samples: 0,
+                curve: Vec::with_capacity(self.score_at.len() + 1),
+            };
+            if let Some(progress) = self.progress.filter(|p| p.path.exists()) {
+                so_far = resume(progress.path, &config, trainer)?;
+            }
+            let mut observer = ExperimentSteps {
+                on_step,
+                score: &|trainer: &mut Trainer<'_>| Ok(score(trainer)?.1),
+                score_at: self.score_at,
+                progress: self.progress,
+                so_far,
+                clock: Instant::now(),
+            };
+            crate::pipeline::train_steps(trainer, &executor, config.steps, &mut observer).map_err(
+                |e| match e {
+                    HostError::Core(reason) => HostError::invalid(&dataset.source, reason),
+                    other => other,
+                },
+            )?;
+            let FiguresSoFar {
+                mut train_seconds,
+                rays,
+                samples,
+                mut curve,
+            } = observer.so_far;
+            let start = observer.clock;
+            // The poses' refinement with the field frozen is the run's last training stage.
+            let refine_start = Instant::now();
+            let pose_fits = train::refine_poses(trainer, &executor)?;
+            let pose_refine_seconds = refine_start.elapsed().as_secs_f64();
+            train_seconds += start.elapsed().as_secs_f64();
+            let tally = train::TrainingTally {
+                steps: config.steps as u64,
+                samples,
+            };
+            train::check_trained(&dataset.source, trainer, tally)?;
+            let training = TrainingFigures {
+                steps: trainer.state().step as u64,
+                steps_skipped: trainer.state().skipped as u64,
+                seconds: train_seconds,
+                samples_per_ray: samples as f64 / rays.max(1) as f64,
+            };
+            if let Some(path) = checkpoint {
+                train::save_checkpoint(path, trainer, &[])?;
+            }
+            let (scores, metrics) = score(trainer)?;
+            curve.push(CurvePoint {
+                step: config.steps,
+                seconds: train_seconds,
+                metrics,
+            });
+            let mut mean = vec![0.0f32; config.embedding_dim as usize];
+            trainer.mean_embedding(&mut mean);
+            let surface = geometry::extract_surface(
                 trainer,
                 &executor,
-                dataset,
-                self.test_idx,
-                poses,
-                (self.fit_steps, align),
-                None,
-            )?;
-            let per_view: Vec<ViewMetrics> = scores.iter().map(|s| s.metrics).collect();
-            Ok((scores, report::mean_metrics(&per_view)))
-        };
-        let score = |trainer: &mut Trainer<'_>| score_at(trainer, None, false);
-        let mut so_far = FiguresSoFar {
-            train_seconds: 0.0,
-            rays: 0,
-            samples: 0,
-            curve: Vec::with_capacity(self.score_at.len() + 1),
-        };
-        if let Some(progress) = self.progress.filter(|p| p.path.exists()) {
-            so_far = resume(progress.path, &config, &mut trainer)?;
-        }
-        let mut observer = ExperimentSteps {
-            on_step,
-            score: &|trainer: &mut Trainer<'_>| Ok(score(trainer)?.1),
-            score_at: self.score_at,
-            progress: self.progress,
-            so_far,
-            clock: Instant::now(),
-        };
-        crate::pipeline::train_steps(&mut trainer, &executor, config.steps, &mut observer)
-            .map_err(|e| match e {
-                HostError::Core(reason) => HostError::invalid(&dataset.source, reason),
-                other => other,
-            })?;
-        let FiguresSoFar {
-            mut train_seconds,
-            rays,
-            samples,
-            mut curve,
-        } = observer.so_far;
-        let start = observer.clock;
-        // The poses' refinement with the field frozen is the run's last training stage.
-        let refine_start = Instant::now();
-        let pose_fits = train::refine_poses(&mut trainer, &executor)?;
-        let pose_refine_seconds = refine_start.elapsed().as_secs_f64();
-        train_seconds += start.elapsed().as_secs_f64();
-        let tally = train::TrainingTally {
-            steps: config.steps as u64,
-            samples,
-        };
-        train::check_trained(&dataset.source, &trainer, tally)?;
-        let training = TrainingFigures {
-            steps: trainer.state().step as u64,
-            steps_skipped: trainer.state().skipped as u64,
-            seconds: train_seconds,
-            samples_per_ray: samples as f64 / rays.max(1) as f64,
-        };
-        if let Some(path) = checkpoint {
-            train::save_checkpoint(path, &trainer, &[])?;
-        }
-        let (scores, metrics) = score(&mut trainer)?;
-        curve.push(CurvePoint {
-            step: config.steps,
-            seconds: train_seconds,
-            metrics,
-        });
-        let mut mean = vec![0.0f32; config.embedding_dim as usize];
-        trainer.mean_embedding(&mut mean);
-        let surface = geometry::extract_surface(
-            &mut trainer,
-            &executor,
-            &mean,
-            &SurfaceOptions::default(),
-            &dataset.source,
-            crate::memory::limit_or_default(None),
-        );
-        let metrics_exact = match self.truth {
-            Some(truth) => Some(score_at(&mut trainer, Some(truth), false)?.1),
-            None => None,
-        };
-        let (_, metrics_aligned) = score_at(&mut trainer, None, true)?;
-        let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
-        let corrected: Vec<Pose> = labels
-            .iter()
-            .enumerate()
-            .map(|(slot, label)| {
-                let correction = trainer.pose_correction(slot).unwrap_or_default();
-                correction.apply(label, config.pose_pivot_point())
-            })
-            .collect();
-        let exact: Option<Vec<Pose>> = self
-            .truth
-            .map(|truth| train_idx.iter().map(|&i| truth[i]).collect());
-        let (pose_before, pose_after) = match &exact {
-            Some(exact) => (
-                Some(report::pose_errors(&labels, exact)),
-                Some(report::pose_errors(&corrected, exact)),
-            ),
-            None => (None, None),
-        };
-        let pose_frames = report::frame_poses(&names, &pose_fits, &corrected, exact.as_deref());
-        let pose_uncertainty =
-            (!pose_frames.is_empty()).then(|| report::pose_uncertainty(&pose_frames));
-        if let Some(progress) = self.progress {
-            // The run's own scratch file: its figures are in the result now.
-            match std::fs::remove_file(progress.path) {
-                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                    return Err(HostError::io(progress.path, e));
+                &mean,
+                &SurfaceOptions::default(),
+                &dataset.source,
+                crate::memory::limit_or_default(None),
+            );
+            let metrics_exact = match self.truth {
+                Some(truth) => Some(score_at(trainer, Some(truth), false)?.1),
+                None => None,
+            };
+            let (_, metrics_aligned) = score_at(trainer, None, true)?;
+            let labels: Vec<Pose> = train_idx.iter().map(|&i| dataset.frames[i].pose).collect();
+            let corrected: Vec<Pose> = labels
+                .iter()
+                .enumerate()
+                .map(|(slot, label)| {
+                    let correction = trainer.pose_correction(slot).unwrap_or_default();
+                    correction.apply(label, config.pose_pivot_point())
+                })
+                .collect();
+            let exact: Option<Vec<Pose>> = self
+                .truth
+                .map(|truth| train_idx.iter().map(|&i| truth[i]).collect());
+            let (pose_before, pose_after) = match &exact {
+                Some(exact) => (
+                    Some(report::pose_errors(&labels, exact)),
+                    Some(report::pose_errors(&corrected, exact)),
+                ),
+                None => (None, None),
+            };
+            let pose_frames = report::frame_poses(&names, &pose_fits, &corrected, exact.as_deref());
+            let pose_uncertainty =
+                (!pose_frames.is_empty()).then(|| report::pose_uncertainty(&pose_frames));
+            if let Some(progress) = self.progress {
+                // The run's own scratch file: its figures are in the result now.
+                match std::fs::remove_file(progress.path) {
+                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                        return Err(HostError::io(progress.path, e));
+                    }
+                    _ => {}
                 }
-                _ => {}
             }
-        }
-        Ok(VariantResult {
-            variant: Variant {
-                name: "",
-                embedding_dim: config.embedding_dim,
-                pose_correction: config.pose_correction,
-            },
-            train_seconds,
-            metrics,
-            curve,
-            samples,
-            arena_bytes: plan.total,
-            views: train::view_figures(&scores),
-            renders: scores.into_iter().map(|s| s.render).collect(),
-            pose_before,
-            pose_after,
-            pose_fits,
-            pose_frames,
-            pose_uncertainty,
-            pose_refine_seconds,
-            metrics_exact,
-            metrics_aligned,
-            training,
-            surface,
+            Ok(VariantResult {
+                variant: Variant {
+                    name: "",
+                    embedding_dim: config.embedding_dim,
+                    pose_correction: config.pose_correction,
+                },
+                train_seconds,
+                metrics,
+                curve,
+                samples,
+                arena_bytes: MemoryPlan::new(&config).total,
+                views: train::view_figures(&scores),
+                renders: scores.into_iter().map(|s| s.render).collect(),
+                pose_before,
+                pose_after,
+                pose_fits,
+                pose_frames,
+                pose_uncertainty,
+                pose_refine_seconds,
+                metrics_exact,
+                metrics_aligned,
+                training,
+                surface,
+            })
         })
     }
 }

@@ -457,8 +457,12 @@ pub fn run_demo(
     let (train_idx, test_idx) = split_every(dataset.frames.len(), 8);
     let mut config = Config::SPACECRAFT;
     stated_label_noise("lightbox")?.state_in(&mut config);
-    config.steps = steps.unwrap_or(DEMO_STEPS);
-    config.warmup_steps = config.warmup_steps.min(config.steps);
+    let steps = steps.or(Some(DEMO_STEPS));
+    crate::pipeline::Overrides {
+        steps,
+        ..Default::default()
+    }
+    .apply(&mut config);
     let fit_steps = crate::train::DEFAULT_FIT_STEPS;
     let result = ablation::run_variant(
         &dataset,

@@ -87,8 +87,12 @@ pub fn run(args: &BenchArgs) -> CliResult {
         ..
     } = open_dataset(&settings, None, &[])?;
     choose_box(&mut dataset, None, args.config.as_deref(), &train_idx)?;
-    base.steps = args.warmup + args.timed_steps;
-    base.warmup_steps = base.warmup_steps.min(base.steps);
+    let steps = Some(args.warmup + args.timed_steps);
+    pipeline::Overrides {
+        steps,
+        ..Default::default()
+    }
+    .apply(&mut base);
     let config = train::fit_config(&base, &dataset, train_idx.len());
     let frames: Vec<_> = train_idx.iter().map(|&i| &dataset.frames[i]).collect();
     println!("model: {}", presets::describe(&config));

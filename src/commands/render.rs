@@ -114,6 +114,8 @@ pub fn run(args: &RenderArgs) -> CliResult {
 
 /// Render an orbit or a path file's cameras with the mean training embedding.
 fn new_views(args: &RenderArgs) -> CliResult {
+    // The output folder is checked before the data is read (`render_path` checks its files).
+    io::check_output_folder(&args.out())?;
     let (checkpoint, settings) = args.model.checkpoint_and_data(&args.data, "render")?;
     let data = open_dataset(&settings, None, &[])?;
     let path = match (&args.path, args.orbit) {

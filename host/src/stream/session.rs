@@ -8,14 +8,14 @@
 
 use super::{
     Control, Event, FixedSetPoint, FrameSource, OfflinePoint, Outcome, StreamSettings, StreamState,
-    core_error, fixed_set_curve, offline_reference, stream_config, write_curve,
+    fixed_set_curve, offline_reference, stream_config, write_curve,
 };
 use crate::error::Result;
 use crate::pipeline::{self, CHECKPOINT_FILE, ChosenConfig};
 use crate::report::{Figures, ModelFigures, TrainingFigures};
 use crate::scene_box::box_text;
 use crate::train::RayonExecutor;
-use crate::{io, memory, presets};
+use crate::{io, presets};
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -210,104 +210,99 @@ impl StreamRequest {
             self.fresh(kind, source, &checkpoint_path, observer)?
         };
         let executor = RayonExecutor::new(self.threads)?;
-        let plan = MemoryPlan::new(&config);
-        memory::check_arena(
-            Path::new(&format!("the model for {}", source.info().name)),
-            &plan,
-            memory::limit_or_default(self.memory_limit),
-        )?;
-        let mut arena = vec![0u8; plan.total];
-        let mut trainer = Trainer::new(config, &mut arena).map_err(|e| core_error("config", e))?;
-        if self.resume {
-            super::restore(&checkpoint_path, &mut trainer)?;
+        let what = PathBuf::from(format!("the model for {}", source.info().name));
+        pipeline::with_trainer(&what, (config, self.memory_limit), &[], &[], |trainer| {
+            if self.resume {
+                super::restore(&checkpoint_path, trainer)?;
+                observer.note(&format!(
+                    "resuming {} at arrival {} ({} steps done)",
+                    checkpoint_path.display(),
+                    state.position,
+                    trainer.state().step
+                ));
+            }
             observer.note(&format!(
-                "resuming {} at arrival {} ({} steps done)",
-                checkpoint_path.display(),
-                state.position,
-                trainer.state().step
+                "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
+                source.info().name,
+                config.max_frames,
+                config.replacement,
+                state.settings.steps_per_frame,
+                self.threads,
+                MemoryPlan::new(&config).total as f64 / (1 << 20) as f64
             ));
-        }
-        observer.note(&format!(
-            "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
-            source.info().name,
-            config.max_frames,
-            config.replacement,
-            state.settings.steps_per_frame,
-            self.threads,
-            plan.total as f64 / (1 << 20) as f64
-        ));
-        observer.start(state.position, source.info().frames.or(self.end_after));
-        let start = Instant::now();
-        let control = Control {
-            stop,
-            stop_after: self.stop_after,
-            end_after: self.end_after,
-            checkpoint: &checkpoint_path,
-        };
-        let outcome = super::run(
-            &mut trainer,
-            &executor,
-            source,
-            &mut state,
-            &control,
-            &mut |event| observer.event(event),
-        )?;
-        let seconds = start.elapsed().as_secs_f64();
-        if outcome == Outcome::Stopped {
-            write_curve(&self.out, &state.curve, None, None)?;
-            return Ok(StreamEnd::Stopped {
-                position: state.position,
-                step: trainer.state().step,
-            });
-        }
-        let source = &*source;
-        let total = state.curve.len() as u64;
-        observer.progress(Stage::FixedSet, 0, total);
-        let fixed_set = fixed_set_curve(
-            &checkpoint_path,
-            source,
-            &state,
-            &config,
-            &executor,
-            self.memory_limit,
-            &mut |index| observer.progress(Stage::FixedSet, index as u64 + 1, total),
-        )?;
-        let offline = if self.compare_offline {
-            let steps = trainer.state().step;
-            observer.progress(Stage::OfflineReference, 0, steps as u64);
-            let started = Instant::now();
-            let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
-            let points = offline_reference(
+            observer.start(state.position, source.info().frames.or(self.end_after));
+            let start = Instant::now();
+            let control = Control {
+                stop,
+                stop_after: self.stop_after,
+                end_after: self.end_after,
+                checkpoint: &checkpoint_path,
+            };
+            let outcome = super::run(
+                trainer,
+                &executor,
+                source,
+                &mut state,
+                &control,
+                &mut |event| observer.event(event),
+            )?;
+            let seconds = start.elapsed().as_secs_f64();
+            if outcome == Outcome::Stopped {
+                write_curve(&self.out, &state.curve, None, None)?;
+                return Ok(StreamEnd::Stopped {
+                    position: state.position,
+                    step: trainer.state().step,
+                });
+            }
+            let source = &*source;
+            let total = state.curve.len() as u64;
+            observer.progress(Stage::FixedSet, 0, total);
+            let fixed_set = fixed_set_curve(
+                &checkpoint_path,
                 source,
                 &state,
                 &config,
-                steps,
-                &at_steps,
                 &executor,
-                &mut |step| {
-                    observer.progress(Stage::OfflineReference, step as u64 + 1, steps as u64)
-                },
+                self.memory_limit,
+                &mut |index| observer.progress(Stage::FixedSet, index as u64 + 1, total),
             )?;
-            let seconds = started.elapsed().as_secs_f64();
-            Some(OfflineReference { points, seconds })
-        } else {
-            None
-        };
-        write_curve(
-            &self.out,
-            &state.curve,
-            Some(&fixed_set),
-            offline.as_ref().map(|o| o.points.as_slice()),
-        )?;
-        let summary = summary(&state, &trainer, seconds, offline.as_ref());
-        io::write_atomic(&self.out.join("summary.md"), summary.as_bytes())?;
-        figures(&state, &trainer, seconds, offline.as_ref()).write(&self.out)?;
-        Ok(StreamEnd::Finished(Box::new(FinishedStream {
-            state,
-            fixed_set,
-            offline,
-            summary,
-        })))
+            let offline = if self.compare_offline {
+                let steps = trainer.state().step;
+                observer.progress(Stage::OfflineReference, 0, steps as u64);
+                let started = Instant::now();
+                let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
+                let points = offline_reference(
+                    source,
+                    &state,
+                    &config,
+                    steps,
+                    &at_steps,
+                    &executor,
+                    &mut |step| {
+                        observer.progress(Stage::OfflineReference, step as u64 + 1, steps as u64)
+                    },
+                )?;
+                let seconds = started.elapsed().as_secs_f64();
+                Some(OfflineReference { points, seconds })
+            } else {
+                None
+            };
+            write_curve(
+                &self.out,
+                &state.curve,
+                Some(&fixed_set),
+                offline.as_ref().map(|o| o.points.as_slice()),
+            )?;
+            let summary = summary(&state, trainer, seconds, offline.as_ref());
+            io::write_atomic(&self.out.join("summary.md"), summary.as_bytes())?;
+            figures(&state, trainer, seconds, offline.as_ref()).write(&self.out)?;
+            Ok(StreamEnd::Finished(Box::new(FinishedStream {
+                state,
+                fixed_set,
+                offline,
+                summary,
+            })))
+        })
     }
 
     /// A fresh stream's config and state: the model chosen for `kind`, with the scene box by

@@ -5,12 +5,12 @@
 //! stopped and `sweep slurm` takes the same descriptions to a cluster; `paper.md` gathers
 //! the tables with the CPU that ran them.
 
-use super::results::{TaskResult, read_result};
+use super::results::{TaskResult, fixed, read_result};
 use super::studies::{Written, write_description};
 use super::{Source, Sweep, TestSet};
 use crate::error::{HostError, Result};
 use crate::io::write_atomic;
-use crate::report::{format_or_na, markdown_table};
+use crate::report::markdown_table;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -185,14 +185,13 @@ fn main_table(main: &[(&PaperSweep, &Sweep)], out: &Path) -> Result<String> {
                 HostError::invalid(&dir, format!("task {} has no result", task.index))
             })?;
             let m = &result.metrics;
-            let cell = |v: Option<f64>, d: usize| format_or_na(v.unwrap_or(f64::NAN), d);
             rows.push(vec![
                 format!("`{set}`"),
                 result.variant.clone(),
-                cell(m.psnr_full, 2),
-                cell(m.ssim_full, 4),
-                cell(m.jnb_full, 3),
-                cell(m.psnr_foreground, 2),
+                fixed(m.psnr_full, 2),
+                fixed(m.ssim_full, 4),
+                fixed(m.jnb_full, 3),
+                fixed(m.psnr_foreground, 2),
                 result.held_out_views.to_string(),
                 format!("{}, {}, {}", task.frames, result.size, result.steps),
             ]);

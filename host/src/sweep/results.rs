@@ -692,7 +692,8 @@ pub fn collect(sweep: &Sweep, out: &Path) -> Result<String> {
     Ok(text)
 }
 
-fn fixed(value: Option<f64>, decimals: usize) -> String {
+/// A stored number with `decimals` decimals, `n/a` where none.
+pub(super) fn fixed(value: Option<f64>, decimals: usize) -> String {
     format_or_na(loaded(value), decimals)
 }
 

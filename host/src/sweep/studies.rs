@@ -157,10 +157,11 @@ pub fn tradeoff_description(
 ) -> Result<String> {
     let mut table = data.table(Some(preset))?;
     let mut base = *base;
-    if let Some(steps) = data.steps {
-        base.steps = steps;
-        base.warmup_steps = base.warmup_steps.min(steps);
-    }
+    let steps = crate::pipeline::Overrides {
+        steps: data.steps,
+        ..Default::default()
+    };
+    steps.apply(&mut base);
     table.insert("steps".into(), i64::from(base.steps).into());
     if let Some(frames) = study.frames {
         table.insert("frames".into(), i64::from(frames).into());
