@@ -157,7 +157,13 @@ fn the_avx512_kernels_give_the_bytes_of_the_eight_lane_ones() {
 /// format 5 (issue 39): the config gained the pose prior and refinement fields and the
 /// training state the pose corrections' own update count (the plain run, without pose
 /// correction, takes none of the new paths); the method run's poses now learn on their own
-/// schedule and update count, under the gauge, so its bytes move.
+/// schedule and update count, under the gauge, so its bytes move. Re-recorded for format 6
+/// (issue 43): the config gained `ray_store`, `loss_weighted_frames` and `lr_decay_start`,
+/// the training state the ray reservoir's counts and each frame slot's metadata its running
+/// loss; with the version set back to 5, the three config fields (a zero byte each, four for
+/// `lr_decay_start`) cut from the config, the state cut back to its first 20 bytes and each
+/// slot's metadata to its first 104, both runs' bytes hash to the format-5 records
+/// (0x4ae3_dabb_0a99_713c and 0xa041_a93c_cf94_0ead): whole-frame training moved no bit.
 #[test]
 fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     let mut plain = tiny_config();
@@ -172,8 +178,8 @@ fn lego_checkpoint_bytes_equal_the_recorded_ones() {
     method.random_background = true;
     method.foreground_fraction = 0.5;
     for (name, config, recorded) in [
-        ("tiny", plain, 0x4ae3_dabb_0a99_713c),
-        ("tiny + method", method, 0xa041_a93c_cf94_0ead),
+        ("tiny", plain, 0xab35_5504_7826_b388),
+        ("tiny + method", method, 0xb6fc_1748_fa61_44e2),
     ] {
         let Some(bytes) = checkpoint_of_config(config, 2) else {
             return;
@@ -684,14 +690,19 @@ fn a_training_step_allocates_nothing() {
 
 #[test]
 fn streaming_frames_through_a_full_store_allocates_nothing() {
-    for replacement in [
-        Replacement::Fifo,
-        Replacement::Novelty,
-        Replacement::Coverage,
+    // Whole frames under each policy, and a ray reservoir (a full table of remembered frames
+    // under FIFO, so frames take over their predecessors' entries).
+    for (replacement, ray_store) in [
+        (Replacement::Fifo, 0),
+        (Replacement::Novelty, 0),
+        (Replacement::Coverage, 0),
+        (Replacement::Fifo, 3000),
     ] {
         let mut config = tiny_config();
         config.max_frames = 4;
         config.replacement = replacement;
+        config.ray_store = ray_store;
+        config.foreground_fraction = 0.5;
         let plan = MemoryPlan::new(&config);
         let mut arena = vec![0u8; plan.total];
         let mut trainer = Trainer::new(config, &mut arena).unwrap();
@@ -721,6 +732,13 @@ fn streaming_frames_through_a_full_store_allocates_nothing() {
         );
         assert!(stored >= 4, "{replacement:?}: {stored} frames stored");
         assert_eq!(trainer.frames().len(), 4);
+        assert_eq!(trainer.frames().keeps_rays(), ray_store > 0);
+        // Each of the 4 frames held keeps all 256 of its pixels in each part (its share, 375
+        // places, is more than a 16 x 16 frame holds).
+        assert_eq!(
+            trainer.state().rays.filled,
+            [1024, 1024].map(|n| n * (ray_store > 0) as u32)
+        );
     }
 }
 

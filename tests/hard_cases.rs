@@ -815,11 +815,12 @@ fn a_run_whose_every_step_was_skipped_is_refused() {
     };
     assert!(train::check_trained(Path::new("run"), &trainer, tally).is_ok());
     // The state of a run of 5 steps, all skipped: step, updates, skipped, refreshes, pose
-    // updates.
-    let state: Vec<u8> = [5u32, 0, 5, 0, 0]
+    // updates, padding, then the ray reservoir's counts (none).
+    let mut state: Vec<u8> = [5u32, 0, 5, 0, 0, 0]
         .iter()
         .flat_map(|v| v.to_ne_bytes())
         .collect();
+    state.extend([0u8; size_of::<orbit_nerf_core::RayCounts>()]);
     trainer.restore_section("state", &state).unwrap();
     let error = train::check_trained(Path::new("run"), &trainer, tally)
         .unwrap_err()

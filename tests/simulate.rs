@@ -200,12 +200,14 @@ fn landmarks_projected_with_the_true_pose_land_on_the_mask() {
     let dir = TempDir::new("landmarks");
     // The third case renders through the SPEED+ lens distortion (mild near the centre); the
     // loader undistorts images and masks back to the pinhole camera used for projecting. The
-    // fourth renders 128 x 80 px frames (inspection's aspect).
+    // fourth renders 128 x 80 px frames (inspection's aspect). The fifth is the streaming
+    // scene's approach: the target in view, every landmark in the image, from 6 m to 2.8 m.
     for (name, distortion) in [
         ("synthetic", false),
         ("sunlamp", false),
         ("sunlamp", true),
         ("inspection", false),
+        ("rendezvous", false),
     ] {
         let out = dir.0.join(format!("{name}-{distortion}"));
         let mut scene = preset(name, 10, 128);

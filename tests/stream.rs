@@ -11,8 +11,9 @@ use orbit_nerf_host::checkpoint;
 use orbit_nerf_host::formats::speedplus::{self, Label};
 use orbit_nerf_host::sim::{self, Scene};
 use orbit_nerf_host::stream::{
-    self, Control, DatasetSource, Event, FixedSetPoint, FrameSource, Outcome, StreamSettings,
-    StreamState, WatchOptions, WatchedFolder,
+    self, Control, DatasetSource, Event, FixedSetPoint, FrameSource, Keep, ModelChoice, Outcome,
+    SourceKind, StreamEnd, StreamObserver, StreamRequest, StreamSettings, StreamState,
+    WatchOptions, WatchedFolder,
 };
 use orbit_nerf_host::train::{self, RayonExecutor};
 use std::path::{Path, PathBuf};
@@ -45,6 +46,7 @@ fn settings() -> StreamSettings {
         eval_every: 5,
         checkpoint_every: 4,
         fit_steps: 2,
+        budget_ms: None,
     }
 }
 
@@ -53,7 +55,7 @@ fn settings() -> StreamSettings {
 /// state.
 fn stream_api(
     source: &mut dyn FrameSource,
-    store: u16,
+    store: (u16, Keep),
     checkpoint: &Path,
     stop_after: Option<u32>,
     resume: bool,
@@ -68,7 +70,7 @@ fn stream_api(
 /// deterministic `stops.1` (`--stop-after`).
 fn stream_api_stopped_by(
     source: &mut dyn FrameSource,
-    store: u16,
+    store: (u16, Keep),
     checkpoint: &Path,
     (stop, stop_after): (&AtomicBool, Option<u32>),
     resume: bool,
@@ -85,7 +87,7 @@ fn stream_api_stopped_by(
             settings().steps_per_frame,
         )
         .unwrap();
-        let state = StreamState::new(settings(), store as usize, source.info());
+        let state = StreamState::new(settings(), config.max_frames as usize, source.info());
         (config, state)
     };
     let mut arena = vec![0u8; MemoryPlan::new(&config).total];
@@ -180,6 +182,9 @@ fn deterministic_part(state: &StreamState) -> impl PartialEq + std::fmt::Debug {
     )
 }
 
+/// For whole frames and for a ray reservoir remembering 12 frames (in the bytes of 6 whole
+/// ones): a stream stopped part-way and resumed ends bit for bit where the uninterrupted one
+/// does, and pacing the source changes nothing.
 #[test]
 fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     if common::shared_data().is_none() {
@@ -188,10 +193,19 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     let dir = temp_dir("resume");
     let data = dir.join("data");
     simulated_set(&data, 30);
-    let open = || DatasetSource::open(&data, None, None).unwrap();
+    for keep in [Keep::Frames, Keep::Rays { remember: Some(12) }] {
+        stop_and_resume(&data, &dir.join(format!("{keep:?}")), keep);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn stop_and_resume(data: &Path, dir: &Path, keep: Keep) {
+    std::fs::create_dir_all(dir).unwrap();
+    let open = || DatasetSource::open(data, None, None).unwrap();
 
     let whole = dir.join("whole.onrf");
-    let (outcome, whole_state) = stream_api(&mut open(), 6, &whole, None, false, &mut |_| {});
+    let (outcome, whole_state) =
+        stream_api(&mut open(), (6, keep), &whole, None, false, &mut |_| {});
     assert_eq!(outcome, Outcome::Finished);
     // The store filled and the policy had to choose; held-out views were scored on the way.
     assert_eq!(whole_state.position, 30);
@@ -201,16 +215,23 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
         "{whole_state:?}"
     );
     assert!(whole_state.curve.len() >= 6);
+    if let Keep::Rays { remember } = keep {
+        let (config, _) = stream::load(&whole).unwrap();
+        let saved = checkpoint::load(&whole).unwrap();
+        assert!(config.ray_store > 0 && saved.section("frame_masks").unwrap().is_empty());
+        assert_eq!(Some(whole_state.slot_positions.len() as u16), remember);
+    }
 
     // Stopped at step 38, within the 13th arrival's steps (3 per usable frame), past two
     // scorings and three checkpoints; then resumed, first taking the frame's last step.
     let parts = dir.join("parts.onrf");
-    let (outcome, stopped) = stream_api(&mut open(), 6, &parts, Some(38), false, &mut |_| {});
+    let (outcome, stopped) =
+        stream_api(&mut open(), (6, keep), &parts, Some(38), false, &mut |_| {});
     assert_eq!(
         (outcome, stopped.position, saved_step(&parts)),
         (Outcome::Stopped, 13, 38)
     );
-    let (outcome, resumed) = stream_api(&mut open(), 6, &parts, None, true, &mut |_| {});
+    let (outcome, resumed) = stream_api(&mut open(), (6, keep), &parts, None, true, &mut |_| {});
     assert_eq!(outcome, Outcome::Finished);
     assert_eq!(
         deterministic_part(&resumed),
@@ -251,10 +272,16 @@ fn stopping_and_resuming_gives_the_uninterrupted_result_bit_for_bit() {
     assert_eq!(bits(&resumed_fixed), bits(&whole_fixed));
     // Pacing the source changes nothing either.
     let paced = dir.join("paced.onrf");
-    let mut paced_source = DatasetSource::open(&data, None, Some(200.0)).unwrap();
-    stream_api(&mut paced_source, 6, &paced, None, false, &mut |_| {});
+    let mut paced_source = DatasetSource::open(data, None, Some(200.0)).unwrap();
+    stream_api(
+        &mut paced_source,
+        (6, keep),
+        &paced,
+        None,
+        false,
+        &mut |_| {},
+    );
     assert!(trainer_sections(&paced) == trainer_sections(&whole));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -441,7 +468,7 @@ fn a_watched_folder_ingests_frames_that_appear_while_it_trains_in_order() {
     let mut bad = Vec::new();
     let (outcome, state) = stream_api(
         &mut source,
-        4,
+        (4, Keep::Frames),
         &dir.join("watch.onrf"),
         None,
         false,
@@ -530,7 +557,7 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
     let mut reported = Vec::new();
     let (outcome, state) = stream_api(
         &mut source,
-        4,
+        (4, Keep::Frames),
         &dir.join("bad.onrf"),
         None,
         false,
@@ -660,7 +687,14 @@ fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit(
     simulated_set(&data, 24);
     let open = || DatasetSource::open(&data, None, None).unwrap();
     let whole = dir.join("whole.onrf");
-    let (outcome, whole_state) = stream_api(&mut open(), 6, &whole, None, false, &mut |_| {});
+    let (outcome, whole_state) = stream_api(
+        &mut open(),
+        (6, Keep::Frames),
+        &whole,
+        None,
+        false,
+        &mut |_| {},
+    );
     assert_eq!(outcome, Outcome::Finished);
 
     let parts = dir.join("parts.onrf");
@@ -675,8 +709,14 @@ fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit(
             stop: &stop,
         };
         let stops = (&stop, None);
-        let (outcome, state) =
-            stream_api_stopped_by(&mut source, 6, &parts, stops, resume, &mut |_| {});
+        let (outcome, state) = stream_api_stopped_by(
+            &mut source,
+            (6, Keep::Frames),
+            &parts,
+            stops,
+            resume,
+            &mut |_| {},
+        );
         assert_eq!((outcome, state.position), (Outcome::Stopped, raise_at + 1));
         // The frame is in (or held out) and owes its 3 steps.
         assert_eq!(state.usable, raise_at + 1);
@@ -692,7 +732,14 @@ fn a_stop_within_a_frames_steps_resumes_to_the_uninterrupted_result_bit_for_bit(
                 std::thread::sleep(Duration::from_millis(delay_ms));
                 stop.store(true, Ordering::SeqCst);
             });
-            stream_api_stopped_by(&mut open(), 6, &parts, (&stop, None), true, &mut |_| {})
+            stream_api_stopped_by(
+                &mut open(),
+                (6, Keep::Frames),
+                &parts,
+                (&stop, None),
+                true,
+                &mut |_| {},
+            )
         });
         if outcome == Outcome::Finished {
             break;
@@ -752,5 +799,75 @@ fn anytime_points_before_any_held_out_view_print_no_score() {
     }
     assert!(points[3].contains("PSNR") && points[3].contains("on the 1 held-out views"));
     assert!(!text.contains("NaN"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `--budget-ms`: each usable frame trains until its budget has passed since it arrived (at
+/// least one step), the steps frames managed are counted and the summary says the result
+/// depends on the machine; the fixed-set curve and the forgetting line are reported. The
+/// store here is a ray reservoir remembering every frame.
+#[test]
+fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_managed() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let dir = temp_dir("budget");
+    let data = dir.join("data");
+    simulated_set(&data, 12);
+    let request = StreamRequest {
+        out: dir.join("out"),
+        store: 4,
+        keep: Keep::Rays { remember: None },
+        replacement: Replacement::Fifo,
+        settings: StreamSettings {
+            budget_ms: Some(60),
+            holdout_every: 4,
+            ..settings()
+        },
+        model: ModelChoice {
+            preset: Some("tiny".into()),
+            ..ModelChoice::default()
+        },
+        scene_box: None,
+        stop_after: None,
+        end_after: None,
+        compare_offline: false,
+        memory_limit: None,
+        threads: 2,
+        resume: false,
+        replace: false,
+    };
+    struct Quiet;
+    impl StreamObserver for Quiet {}
+    let mut source = DatasetSource::open(&data, None, None).unwrap();
+    let kind = SourceKind::DatasetFolder(data.clone());
+    let end = request
+        .run(&kind, &mut source, &AtomicBool::new(false), &mut Quiet)
+        .unwrap();
+    let StreamEnd::Finished(finished) = end else {
+        panic!("the stream did not finish");
+    };
+    let budget = finished.state.budget_steps;
+    // Every usable frame trains (the held-out ones too, once the store holds a frame).
+    assert_eq!(budget.frames, 12);
+    assert!(budget.min >= 1 && budget.max >= budget.min, "{budget:?}");
+    assert_eq!(
+        Some(budget.steps as u32),
+        finished.state.curve.last().map(|p| p.steps)
+    );
+    let summary = &finished.summary;
+    assert!(
+        summary.contains("real-time mode: 60 ms per frame"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("depends on this machine's speed"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("fixed set (all 3 held-out views)"),
+        "{summary}"
+    );
+    assert!(summary.contains("- forgetting: "), "{summary}");
     let _ = std::fs::remove_dir_all(&dir);
 }

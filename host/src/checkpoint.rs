@@ -30,8 +30,10 @@ pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// so a version 2 model of a box other than [-1.5, 1.5]³ would render differently. Version 4:
 /// the config gained `plane_tv_weight` and `coarse_to_fine_steps` (configs are encoded by
 /// field position). Version 5: the config gained the pose prior and refinement fields, and
-/// the training state the pose corrections' own update count.
-pub const FORMAT_VERSION: u32 = 5;
+/// the training state the pose corrections' own update count. Version 6: the config gained
+/// `ray_store`, `loss_weighted_frames` and `lr_decay_start`, the training state the ray
+/// reservoir's counts and each frame slot's metadata its running loss.
+pub const FORMAT_VERSION: u32 = 6;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 

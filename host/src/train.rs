@@ -86,6 +86,13 @@ pub fn with_overrides(
     Ok(config)
 }
 
+/// Whether a config file sets `key` (at the top level or in a `[config]` table): a field the
+/// file leaves to its preset does not count.
+pub fn config_file_sets(path: &Path, key: &str) -> Result<bool> {
+    let text = std::fs::read_to_string(path).map_err(|e| HostError::io(path, e))?;
+    Ok(config_table(path, &text)?.contains_key(key))
+}
+
 /// The scene box a config file sets (`aabb_min` and `aabb_max`, at the top level or in a
 /// `[config]` table), `None` when it sets none. Only a box written in the file counts: the one
 /// a file leaves to its preset does not. A box the user wrote wins over the data's own (see

@@ -17,6 +17,8 @@ pub const PART_ALIGN: usize = 64;
 pub const RGB: usize = 3;
 /// Per-frame pose-correction parameters: translation (3) and quaternion vector part (3).
 pub const POSE_PARAMS: usize = 6;
+/// The most pixels a ray reservoir keeps (`Config::ray_store`).
+pub const MAX_RAY_STORE: u32 = 1 << 28;
 
 /// How small plane updates survive storage in f16.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -155,6 +157,12 @@ pub struct Config {
     pub replacement: Replacement,
     /// Pixel capacity of one frame slot (width * height of the largest frame).
     pub max_pixels_per_frame: u32,
+    /// 0: each frame slot keeps its whole frame. N > 0: the slots keep only camera, label and
+    /// learnable parameters, and N pixels of all the frames stored (10 bytes each) are kept
+    /// in one reservoir that every frame shares alike (`frames.rs`), so `max_frames` can be
+    /// the most frames a stream remembers rather than the most it holds whole. At most
+    /// 2^28.
+    pub ray_store: u32,
     /// Rays sampled per training step: a multiple of `chunks`, at most 1048576 (each ray
     /// takes 104 bytes of the arena: the ray batch and the chunks' per-ray buffers; a stop
     /// request is heard between a chunk's passes, within a step).
@@ -163,6 +171,11 @@ pub struct Config {
     /// box of pixels brighter than the sky); the rest cover the whole image, so empty space
     /// stays empty. 0 samples every pixel alike.
     pub foreground_fraction: f32,
+    /// Draw each training ray's frame in proportion to that frame's running loss (the mean
+    /// squared error of its recent training rays, relative to the largest, at least 1/16)
+    /// instead of uniformly: steps go where the field is still wrong, such as the views a
+    /// stream took in last. A new frame starts at the largest running loss.
+    pub loss_weighted_frames: bool,
     /// The batch is cut into this many equal chunks, each with its own buffers; the host
     /// runs chunks on threads, and results never depend on which thread ran which chunk.
     pub chunks: u8,
@@ -181,6 +194,10 @@ pub struct Config {
     pub learning_rate: f32,
     /// The cosine schedule ends at learning_rate * final_lr_factor.
     pub final_lr_factor: f32,
+    /// Fraction of the steps after the warm-up that keep the peak rate before the cosine
+    /// decay starts, in [0, 1): 0 decays from the warm-up on; a stream sets it so that the
+    /// frames arriving late are still learned at a useful rate.
+    pub lr_decay_start: f32,
     /// Adam's decay of the first-moment (mean gradient) estimate, in [0, 1).
     pub adam_beta1: f32,
     /// Adam's decay of the second-moment (squared gradient) estimate, in [0, 1).
@@ -285,14 +302,17 @@ impl Config {
         max_frames: 128,
         replacement: Replacement::Fifo,
         max_pixels_per_frame: 128 * 128,
+        ray_store: 0,
         rays_per_batch: 4096,
         foreground_fraction: 0.0,
+        loss_weighted_frames: false,
         chunks: 4,
         samples_per_chunk: 1024,
         steps: 3000,
         warmup_steps: 128,
         learning_rate: 0.01,
         final_lr_factor: 0.03,
+        lr_decay_start: 0.0,
         adam_beta1: 0.9,
         adam_beta2: 0.99,
         adam_eps: 1e-15,
@@ -381,6 +401,23 @@ impl Config {
         let r = self.occupancy_res as usize;
         r * r * r
     }
+    /// Bytes of the frame store's pixels and of its masks: whole frames, or the ray
+    /// reservoir (no separate masks).
+    pub const fn frame_pixel_bytes(&self) -> (usize, usize) {
+        let frames = self.max_frames as usize;
+        if self.ray_store > 0 {
+            (self.ray_store as usize * crate::frames::RAY_ENTRY_BYTES, 0)
+        } else {
+            (
+                frames * self.max_pixels_per_frame as usize * 3,
+                frames * self.max_pixels_per_frame as usize,
+            )
+        }
+    }
+    /// Entries of the ray reservoir's foreground part: `foreground_fraction` of it.
+    pub fn foreground_rays(&self) -> usize {
+        (self.ray_store as f32 * self.foreground_fraction.clamp(0.0, 1.0)) as usize
+    }
     /// Per-frame learnable parameters: appearance embedding and pose correction.
     pub const fn frame_params(&self) -> usize {
         self.embedding_dim as usize + POSE_PARAMS
@@ -463,6 +500,9 @@ impl Config {
         if self.max_pixels_per_frame == 0 || self.max_pixels_per_frame > (1 << 26) {
             return bad("max_pixels_per_frame");
         }
+        if self.ray_store > MAX_RAY_STORE {
+            return bad("ray_store");
+        }
         if self.chunks == 0 || self.chunks as usize > MAX_CHUNKS {
             return bad("chunks");
         }
@@ -494,6 +534,9 @@ impl Config {
         }
         if !(self.final_lr_factor.is_finite() && (0.0..=1.0).contains(&self.final_lr_factor)) {
             return bad("final_lr_factor");
+        }
+        if !(self.lr_decay_start.is_finite() && (0.0..1.0).contains(&self.lr_decay_start)) {
+            return bad("lr_decay_start");
         }
         if !(self.adam_beta1.is_finite() && (0.0..1.0).contains(&self.adam_beta1)) {
             return bad("adam_beta1");
@@ -727,9 +770,10 @@ impl MemoryPlan {
         let mlp_bytes = align(mlp * 4) + t * (2 * align(mlp * 4) + chunks * align(mlp * 4));
         let occupancy =
             align(c.occupancy_cells().div_ceil(64) * 8) + t * align(c.occupancy_cells() * 4);
+        let (pixel_bytes, mask_bytes) = c.frame_pixel_bytes();
         let frame_bytes = t
-            * (align(frames * c.max_pixels_per_frame as usize * 3)
-                + align(frames * c.max_pixels_per_frame as usize)
+            * (align(pixel_bytes)
+                + align(mask_bytes)
                 + align(frames * core::mem::size_of::<crate::frames::FrameMeta>())
                 + align(frames * 2)
                 + 3 * align(frames * frame_params * 4)
@@ -748,7 +792,8 @@ impl MemoryPlan {
             + align(chunk_rays * 4)
             + align((1 + t) * LANES * activation_floats(c) * 4)
             + t * align(LANES * widest_layer(c) * 4)
-            + t * align(chunk_rays * RAY_GRAD_FLOATS * 4);
+            + t * align(chunk_rays * RAY_GRAD_FLOATS * 4)
+            + t * align(chunk_rays * 4 * c.loss_weighted_frames as usize);
         let sample_bytes = chunks * per_chunk;
 
         let total = planes

@@ -23,7 +23,8 @@ pub mod rng;
 pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
-pub use config::{Config, MemoryPlan, PosePivot, Replacement, TexelUpdate};
+pub use config::{Config, MAX_RAY_STORE, MemoryPlan, PosePivot, Replacement, TexelUpdate};
+pub use frames::{RAY_ENTRY_BYTES, RayCounts, RayEntry};
 pub use fused::{allow_wide_vectors, wide_vectors};
 pub use glam;
 pub use replacement::Ingested;

@@ -6,8 +6,8 @@ use crate::config::Config;
 use crate::rng;
 use half::f16;
 
-/// Learning rate at `step` (0-based): linear warm-up, then cosine decay to
-/// `learning_rate * final_lr_factor` at the last step.
+/// Learning rate at `step` (0-based): linear warm-up, the peak for `lr_decay_start` of the
+/// remaining steps, then cosine decay to `learning_rate * final_lr_factor` at the last step.
 pub fn learning_rate(c: &Config, step: u32) -> f32 {
     let base = c.learning_rate;
     if step < c.warmup_steps {
@@ -15,6 +15,11 @@ pub fn learning_rate(c: &Config, step: u32) -> f32 {
     }
     let span = (c.steps - c.warmup_steps).max(1) as f32;
     let progress = ((step - c.warmup_steps) as f32 / span).min(1.0);
+    let progress = if c.lr_decay_start > 0.0 {
+        ((progress - c.lr_decay_start) / (1.0 - c.lr_decay_start)).max(0.0)
+    } else {
+        progress
+    };
     let cosine = 0.5 * (1.0 + libm::cosf(core::f32::consts::PI * progress));
     base * (c.final_lr_factor + (1.0 - c.final_lr_factor) * cosine)
 }

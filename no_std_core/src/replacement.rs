@@ -236,6 +236,8 @@ mod tests {
                 occupied: &mut self.occupied,
                 len: 0,
                 max_pixels: 4,
+                foreground_rays: 0,
+                keep_rays: false,
             };
             store.rebuild_occupied();
             store

@@ -47,6 +47,8 @@ pub mod domain {
     pub const ADMIT: u64 = 7;
     /// Pixels picked for the rays of a pose refinement.
     pub const REFINE: u64 = 8;
+    /// Which pixels a frame offers the ray reservoir and which offers it keeps.
+    pub const RESERVOIR: u64 = 9;
 }
 
 /// A small sequential generator for initialisation and tests.

@@ -15,7 +15,7 @@ use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct AblateArgs {
-    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp, inspection; lightbox-test: a separate test set) or a scene file.
+    /// Scene to simulate: a preset (synthetic, lightbox, sunlamp, inspection, rendezvous; lightbox-test: a separate test set) or a scene file.
     #[arg(long, default_value = "lightbox")]
     pub scene: String,
     /// Use this dataset (SPEED+/SHIRT/simulator, NeRF-synthetic or nerfstudio) instead of simulating one.

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct SimulateArgs {
-    /// A preset (synthetic, lightbox, sunlamp, inspection, lightbox-test) or the path of a scene TOML file.
+    /// A preset (synthetic, lightbox, sunlamp, inspection, lightbox-test, rendezvous) or the path of a scene TOML file.
     #[arg(long)]
     pub scene: String,
     /// Output folder. An existing one is replaced only if it is empty or a simulated dataset.

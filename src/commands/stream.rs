@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use orbit_nerf_core::Replacement;
 use orbit_nerf_host::sim::Scene;
 use orbit_nerf_host::stream::{
-    self, DatasetSource, Event, FrameSource, MaskedSource, ModelChoice, SimulatorSource,
+    self, DatasetSource, Event, FrameSource, Keep, MaskedSource, ModelChoice, SimulatorSource,
     SourceKind, Stage, StreamEnd, StreamObserver, StreamRequest, StreamSettings, WatchOptions,
     WatchedFolder,
 };
@@ -39,15 +39,36 @@ pub struct StreamArgs {
     /// view is wide enough for SSIM's 11x11 window.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u16).range(22..))]
     pub size: u16,
-    /// Frame slots of the core's store.
+    /// The core's store takes the bytes of this many whole frames (--keep frames holds
+    /// that many; --keep rays keeps a reservoir of pixels in the same bytes).
     #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u16).range(1..))]
     pub store: u16,
-    /// Replacement policy of a full store.
+    /// What the store keeps in the bytes of --store whole frames: `rays`, a reservoir of
+    /// pixels drawn alike from every frame seen (and every frame's camera, label and learned
+    /// parameters, up to --remember frames), or `frames`, the latest --store frames whole. A
+    /// store too small for a reservoir beside the frames' parameters keeps whole frames
+    /// (unless --remember is given); the stream's first lines say which store it got.
+    #[arg(long, value_enum, default_value_t = KeepArg::Rays)]
+    pub keep: KeepArg,
+    /// With --keep rays: the most frames remembered (their parameters take room from the
+    /// reservoir) [default: the source's frames when it says how many, else 1024, but no
+    /// more than leave the reservoir half the bytes, nor fewer than --store].
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..))]
+    pub remember: Option<u16>,
+    /// Replacement policy of a full store (whole frames), or of a full table of remembered
+    /// frames (rays).
     #[arg(long, value_enum, default_value_t = Policy::Fifo)]
     pub policy: Policy,
-    /// Training steps after each usable frame.
+    /// Training steps after each usable frame (with --budget-ms: the steps the learning-rate
+    /// schedule expects per frame).
     #[arg(long, default_value_t = 17, value_parser = clap::value_parser!(u32).range(1..))]
     pub steps_per_frame: u32,
+    /// Real-time mode: after each usable frame, train until this many milliseconds (1 to
+    /// 3600000) have passed since it arrived, at least one step; the summary says how many
+    /// steps frames managed. The result then depends on the machine's speed and load
+    /// (without it the stream is deterministic).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=3_600_000))]
+    pub budget_ms: Option<u64>,
     /// Every N-th usable frame is held out for the anytime-quality curve (N >= 2, so that
     /// some frames are trained on).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..))]
@@ -129,6 +150,12 @@ pub struct StreamArgs {
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KeepArg {
+    Rays,
+    Frames,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Policy {
     Fifo,
     Novelty,
@@ -175,9 +202,16 @@ fn request(args: &StreamArgs) -> StreamRequest {
     StreamRequest {
         out: args.out.clone(),
         store: args.store,
+        keep: match args.keep {
+            KeepArg::Rays => Keep::Rays {
+                remember: args.remember,
+            },
+            KeepArg::Frames => Keep::Frames,
+        },
         replacement: args.policy.into(),
         settings: StreamSettings {
             steps_per_frame: args.steps_per_frame,
+            budget_ms: args.budget_ms,
             holdout_every: args.holdout,
             eval_every: args.eval_every,
             checkpoint_every: args.checkpoint_every,

@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// The presets shipped in `scenes/`, embedded so that they work from any folder.
-const PRESETS: [(&str, &str); 5] = [
+const PRESETS: [(&str, &str); 6] = [
     ("synthetic", include_str!("../../../scenes/synthetic.toml")),
     ("lightbox", include_str!("../../../scenes/lightbox.toml")),
     ("sunlamp", include_str!("../../../scenes/sunlamp.toml")),
@@ -21,6 +21,10 @@ const PRESETS: [(&str, &str); 5] = [
     (
         "lightbox-test",
         include_str!("../../../scenes/lightbox-test.toml"),
+    ),
+    (
+        "rendezvous",
+        include_str!("../../../scenes/rendezvous.toml"),
     ),
 ];
 
@@ -449,9 +453,8 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// A preset name (`synthetic`, `lightbox`, `sunlamp`, `inspection`, `lightbox-test`) or the
-    /// path of a scene file. A
-    /// preset's data are the built-in copies; a scene file's data paths are tried relative to
+    /// A preset name (`synthetic`, `lightbox`, `sunlamp`, `inspection`, `lightbox-test`,
+    /// `rendezvous`) or the path of a scene file. A preset's data are the built-in copies; a scene file's data paths are tried relative to
     /// its folder, then the current folder, then against the built-in names.
     pub fn load(name_or_path: &str) -> Result<Scene> {
         if let Some((name, text)) = PRESETS.iter().find(|(name, _)| *name == name_or_path) {

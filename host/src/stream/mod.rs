@@ -30,8 +30,8 @@ pub mod session;
 pub mod source;
 
 pub use session::{
-    FinishedStream, ModelChoice, OfflineReference, SourceKind, Stage, StreamEnd, StreamObserver,
-    StreamRequest,
+    FinishedStream, ModelChoice, OfflineReference, STREAM_LR_DECAY_START, SourceKind, Stage,
+    StreamEnd, StreamObserver, StreamRequest,
 };
 #[cfg(feature = "simulator")]
 pub use source::SimulatorSource;
@@ -55,8 +55,15 @@ use std::time::Instant;
 /// How a stream trains and reports (stored in its checkpoints, so a resumed stream keeps them).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamSettings {
-    /// Training steps after each usable frame.
+    /// Training steps after each usable frame (with `budget_ms`: the steps the schedule
+    /// expects per frame).
     pub steps_per_frame: u32,
+    /// Real-time mode: after each usable frame, train until this many milliseconds have
+    /// passed since it arrived (at least one step) instead of `steps_per_frame` steps. The
+    /// result then depends on the machine's speed and load; `None` (the default) keeps the
+    /// stream deterministic.
+    #[serde(default)]
+    pub budget_ms: Option<u64>,
     /// Every this many usable frames, one is held out (the `n`-th, `2n`-th, ...).
     pub holdout_every: u64,
     /// Score the held-out views every this many usable frames.
@@ -65,6 +72,38 @@ pub struct StreamSettings {
     pub checkpoint_every: u64,
     /// Steps fitting a held-out view's embedding on its left half.
     pub fit_steps: u32,
+}
+
+/// The training steps frames managed in a real-time stream's budget
+/// ([`StreamSettings::budget_ms`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BudgetSteps {
+    /// Frames trained on in their budget.
+    pub frames: u64,
+    /// Steps they took in all.
+    pub steps: u64,
+    /// Fewest steps a frame took.
+    pub min: u32,
+    /// Most steps a frame took.
+    pub max: u32,
+}
+
+impl BudgetSteps {
+    fn add(&mut self, steps: u32) {
+        self.min = if self.frames == 0 {
+            steps
+        } else {
+            self.min.min(steps)
+        };
+        self.max = self.max.max(steps);
+        self.frames += 1;
+        self.steps += steps as u64;
+    }
+
+    /// Mean steps per frame (0 before a frame).
+    pub fn mean(&self) -> f64 {
+        self.steps as f64 / self.frames.max(1) as f64
+    }
 }
 
 /// A frame that was reported and skipped.
@@ -184,6 +223,9 @@ pub struct StreamState {
     pub bad: Vec<BadFrame>,
     /// The anytime-quality curve so far.
     pub curve: Vec<AnytimePoint>,
+    /// Real-time mode: the steps each frame managed in its budget.
+    #[serde(default)]
+    pub budget_steps: BudgetSteps,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
     /// This session's training steps, rays and samples (since the stream started or
@@ -208,6 +250,7 @@ impl StreamState {
             slot_positions: vec![None; capacity],
             bad: Vec::new(),
             curve: Vec::new(),
+            budget_steps: BudgetSteps::default(),
             seconds: 0.0,
             session: StepTally::default(),
         }
@@ -285,13 +328,38 @@ pub enum Outcome {
     Stopped,
 }
 
-/// The config of a stream: `base` with the source's scene box and background, `store` slots
-/// of the source's frame size, the replacement policy, and a schedule over the steps the
-/// source's frames will get (when it says how many it has; otherwise `base.steps`).
+/// What a stream's frame store keeps in the bytes of `store` whole frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Keep {
+    /// `store` whole frames: the store forgets a frame's pixels (and its learned parameters)
+    /// when the replacement policy gives up its slot.
+    Frames,
+    /// A ray reservoir in the same bytes, shared alike by every frame seen, and the camera,
+    /// label and learned parameters (appearance embedding, pose correction) of up to
+    /// `remember` frames; past that the replacement policy gives up a frame's slot and its
+    /// pixels (`Config::ray_store`).
+    Rays {
+        /// The most frames remembered; `None`: all the source's frames when it says how
+        /// many (at most 65535), else [`DEFAULT_REMEMBER`], but no more than leave the
+        /// reservoir half the bytes the whole frames' pixels would take, nor fewer than
+        /// `store`.
+        remember: Option<u16>,
+    },
+}
+
+/// Frames a ray reservoir remembers when neither the caller nor the source says how many.
+pub const DEFAULT_REMEMBER: u16 = 1024;
+
+/// The config of a stream: `base` with the source's scene box and background, a store of the
+/// bytes of `store` whole frames of the source's frame size kept as `keep` says, the
+/// replacement policy, and a schedule over the steps the source's frames will get (when it
+/// says how many it has; otherwise `base.steps`). With [`Keep::Rays`] the reservoir takes what
+/// the whole frames would have taken less what remembering `remember` frames' parameters
+/// adds, so the arena is no larger than the whole frames' one; refused when no pixel is left.
 pub fn stream_config(
     base: &Config,
     info: &SourceInfo,
-    store: u16,
+    (store, keep): (u16, Keep),
     replacement: Replacement,
     steps_per_frame: u32,
 ) -> Result<Config> {
@@ -308,12 +376,72 @@ pub fn stream_config(
     c.background = info.background;
     c.max_frames = store;
     c.max_pixels_per_frame = info.max_pixels.min(u32::MAX as usize) as u32;
+    c.ray_store = 0;
+    if let Keep::Rays { remember } = keep {
+        let stated = remember.is_some();
+        let mut remember = remember.unwrap_or_else(|| {
+            info.frames
+                .map_or(DEFAULT_REMEMBER, |n| n.clamp(1, u16::MAX as u64) as u16)
+        });
+        // Unless stated, remember no more frames than leave the reservoir half the bytes the
+        // whole frames' pixels took (small frames, a long or unknown stream), nor fewer than
+        // the whole frames would have held.
+        let half = c.frame_pixel_bytes().0 / 2;
+        while !stated
+            && remember > store
+            && ray_store_in_the_bytes_of(&c, remember)
+                .is_none_or(|r| (r.ray_store as usize) * orbit_nerf_core::RAY_ENTRY_BYTES < half)
+        {
+            remember = (remember / 2).max(store);
+        }
+        match ray_store_in_the_bytes_of(&c, remember) {
+            Some(rays) => c = rays,
+            // A store too small for a reservoir beside the frames' parameters and the
+            // training's own buffers (a few frames of a few hundred pixels) keeps whole frames
+            // unless a number of frames to remember was asked for; the stream's opening line
+            // says which store it got.
+            None if !stated => {}
+            None => {
+                return Err(HostError::invalid(
+                    &info.name,
+                    format!(
+                        "the parameters of {remember} remembered frames do not leave a ray reservoir any room in the bytes of {store} whole frames: remember fewer (--remember), store more (--store) or keep whole frames (--keep frames)"
+                    ),
+                ));
+            }
+        }
+    }
     c.replacement = replacement;
     if let Some(frames) = info.frames {
         c.steps = (frames.saturating_mul(steps_per_frame as u64)).clamp(1, u32::MAX as u64) as u32;
     }
     c.warmup_steps = c.warmup_steps.min(c.steps);
     Ok(c)
+}
+
+/// `whole` (a store of whole frames) turned into a ray reservoir remembering `remember` frames,
+/// the largest whose memory plan is no larger than `whole`'s as plain training carves it (no
+/// loss-weighting buffers, no running loss per frame slot): the reservoir pays for those, so
+/// the arena is never larger than a store of whole frames without them. `None` if not even
+/// one pixel fits.
+fn ray_store_in_the_bytes_of(whole: &Config, remember: u16) -> Option<Config> {
+    let plain = Config {
+        loss_weighted_frames: false,
+        ..*whole
+    };
+    let running_losses = whole.max_frames as usize * core::mem::size_of::<f32>();
+    let budget = MemoryPlan::new(&plain).total.checked_sub(running_losses)?;
+    let mut c = *whole;
+    c.max_frames = remember.max(1);
+    c.ray_store = 1;
+    let spare = budget.checked_sub(MemoryPlan::new(&c).total)?;
+    let entry = orbit_nerf_core::RAY_ENTRY_BYTES;
+    c.ray_store = (1 + spare / entry).min(orbit_nerf_core::MAX_RAY_STORE as usize) as u32;
+    // Parts start on aligned offsets: step down until the plan fits.
+    while MemoryPlan::new(&c).total > budget && c.ray_store > 1 {
+        c.ray_store -= 1;
+    }
+    (MemoryPlan::new(&c).total <= budget).then_some(c)
 }
 
 /// Resident memory of this process in MiB (Linux `/proc/self/status`), NaN elsewhere.
@@ -415,9 +543,16 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
                 let fate = ingest(trainer, state, position, &frame)?;
                 let mut mse = f32::NAN;
                 if !trainer.frames().is_empty() {
-                    let steps = state.settings.steps_per_frame;
-                    (mse, stopped) =
-                        train_frame(trainer, executor, state, control, steps, &frame.name)?;
+                    (mse, stopped) = match state.settings.budget_ms {
+                        None => {
+                            let steps = state.settings.steps_per_frame;
+                            train_frame(trainer, executor, state, control, steps, &frame.name)?
+                        }
+                        Some(ms) => {
+                            let due = started + std::time::Duration::from_millis(ms);
+                            train_until(trainer, executor, state, control, due, &frame.name)?
+                        }
+                    };
                 }
                 on_event(&Event::Frame {
                     position,
@@ -486,6 +621,10 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
 /// `usable * steps_per_frame`, or 0 while nothing was stored. A count that is not short of
 /// that by at most one frame's steps owes nothing.
 pub fn steps_owed(trainer: &Trainer<'_>, state: &StreamState) -> u32 {
+    if state.settings.budget_ms.is_some() {
+        // A real-time stream's frames take what their budget allows: nothing is owed.
+        return 0;
+    }
     let per_frame = state.settings.steps_per_frame as u64;
     let due = if state.stored == 0 {
         0
@@ -522,6 +661,28 @@ fn train_frame<E: Executor>(
     )?;
     state.session.add(&tally);
     Ok((observer.mse, trainer.state().step < frame_end))
+}
+
+/// Real-time mode: train the frame named `name` a step at a time until `due` (at least one
+/// step), hearing stops as [`train_frame`] does; the steps taken go into
+/// `state.budget_steps`. Returns the last step's loss and whether a stop cut it short.
+fn train_until<E: Executor>(
+    trainer: &mut Trainer<'_>,
+    executor: &E,
+    state: &mut StreamState,
+    control: &Control<'_>,
+    due: Instant,
+    name: &str,
+) -> Result<(f32, bool)> {
+    let first = trainer.state().step;
+    let result = loop {
+        let (mse, stopped) = train_frame(trainer, executor, state, control, 1, name)?;
+        if stopped || Instant::now() >= due {
+            break (mse, stopped);
+        }
+    };
+    state.budget_steps.add(trainer.state().step - first);
+    Ok(result)
 }
 
 /// After an arrival (its steps taken, when it was `usable`): the anytime point when one is
@@ -691,16 +852,18 @@ fn ingest(
 
 /// Mean held-out quality of the current model on the frames at `positions`, read again from
 /// the source one at a time (so the memory it takes does not grow with the stream); views that
-/// no longer read are left out. Returns the mean (NaN without views) and the views scored.
+/// no longer read are left out. Returns the mean (NaN without views) and each view scored:
+/// its source position and whole-image PSNR.
 pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
     trainer: &mut Trainer<'_>,
     executor: &E,
     source: &S,
     positions: &[u64],
     fit_steps: u32,
-) -> Result<(ViewMetrics, usize)> {
+) -> Result<(ViewMetrics, Vec<(u64, f64)>)> {
     let info = source.info();
     let mut per_view = Vec::with_capacity(positions.len());
+    let mut scored = Vec::with_capacity(positions.len());
     for &position in positions {
         let Ok(frame) = source.reload(position) else {
             continue;
@@ -716,8 +879,9 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
         };
         let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, false, None)?;
         per_view.extend(scores.iter().map(|s| s.metrics));
+        scored.extend(scores.iter().map(|s| (position, s.metrics.psnr_full)));
     }
-    Ok((report::mean_metrics(&per_view), per_view.len()))
+    Ok((report::mean_metrics(&per_view), scored))
 }
 
 /// [`held_out_quality`] on the stream's held-out views so far, with its fit steps.
@@ -726,7 +890,7 @@ fn held_out_views_quality<E: Executor, S: FrameSource + ?Sized>(
     executor: &E,
     source: &S,
     state: &StreamState,
-) -> Result<(ViewMetrics, usize)> {
+) -> Result<(ViewMetrics, Vec<(u64, f64)>)> {
     held_out_quality(
         trainer,
         executor,
@@ -747,7 +911,7 @@ fn anytime_point<E: Executor, S: FrameSource + ?Sized>(
     Ok(AnytimePoint {
         frames_seen: state.position,
         frames_held: trainer.frames().len(),
-        held_out_views: views,
+        held_out_views: views.len(),
         steps: trainer.state().step,
         psnr: metrics.psnr_full,
         ssim: metrics.ssim_full,
@@ -795,12 +959,52 @@ fn save_snapshot(checkpoint_path: &Path, index: usize, trainer: &Trainer<'_>) ->
 
 /// A point of the curve on the fixed set: every held-out view of the stream, scored with the
 /// model as the stream's point `index` saw it.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct FixedSetPoint {
     /// Means over the views (`report::mean_metrics`).
     pub metrics: ViewMetrics,
     /// Views scored (all the stream's held-out views that still read).
     pub views: usize,
+    /// Each view's source position and whole-image PSNR.
+    pub per_view: Vec<(u64, f64)>,
+}
+
+/// How a held-out view's score moved from the first anytime point after it arrived to the
+/// last: what the stream forgot of (or learned since about) that view.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewForgetting {
+    /// The view's source position.
+    pub position: u64,
+    /// Frames seen at the first point after it arrived.
+    pub first_frames_seen: u64,
+    /// Its whole-image PSNR there, dB.
+    pub first_psnr: f64,
+    /// Its whole-image PSNR at the last point, dB.
+    pub last_psnr: f64,
+}
+
+/// [`ViewForgetting`] of every held-out view scored on the fixed set (`fixed` holds a point
+/// per point of `curve`), in source order.
+pub fn forgetting(curve: &[AnytimePoint], fixed: &[FixedSetPoint]) -> Vec<ViewForgetting> {
+    let Some(last) = fixed.last() else {
+        return Vec::new();
+    };
+    last.per_view
+        .iter()
+        .filter_map(|&(position, last_psnr)| {
+            let (point, fixed) = curve
+                .iter()
+                .zip(fixed)
+                .find(|(p, _)| p.frames_seen > position)?;
+            let &(_, first_psnr) = fixed.per_view.iter().find(|(p, _)| *p == position)?;
+            Some(ViewForgetting {
+                position,
+                first_frames_seen: point.frames_seen,
+                first_psnr,
+                last_psnr,
+            })
+        })
+        .collect()
 }
 
 /// Score every anytime point's snapshot on all the stream's held-out views (read again from
@@ -834,8 +1038,12 @@ pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
         arena.fill(0);
         let mut trainer = Trainer::new(*config, &mut arena).map_err(|e| core_error(&path, e))?;
         train::restore_sections(&path, &mut trainer, &[], &SNAPSHOT_SECTIONS)?;
-        let (metrics, views) = held_out_views_quality(&mut trainer, executor, source, state)?;
-        points.push(FixedSetPoint { metrics, views });
+        let (metrics, per_view) = held_out_views_quality(&mut trainer, executor, source, state)?;
+        points.push(FixedSetPoint {
+            metrics,
+            views: per_view.len(),
+            per_view,
+        });
         on_point(index);
     }
     Ok(points)
@@ -1038,14 +1246,26 @@ pub fn write_curve(
     )
 }
 
-/// The offline reference of a finished stream: a fresh model trained on all its usable,
-/// not-held-out frames at once for the same number of steps, scored on the same held-out
-/// views after each of `at_steps` steps (and after the last). Reads every training frame into
-/// memory (it is the comparison, not the stream).
+/// What an offline reference trains on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OfflineFrames {
+    /// Every usable, not-held-out frame of the stream, whole, at once: what the stream would
+    /// learn with unlimited memory and its steps.
+    AllWhole,
+    /// What the stream's store holds at its end (the same frames offered in the same order to
+    /// a store of the stream's config, which keeps what the stream's kept): what the stream
+    /// would learn from its own memory with its steps spent after the last frame.
+    StreamStore,
+}
+
+/// An offline reference of a finished stream: a fresh model trained on `frames` for the same
+/// number of steps, scored on the same held-out views after each of `at_steps` steps (and
+/// after the last). [`OfflineFrames::AllWhole`] reads every training frame into memory (it is
+/// the comparison, not the stream).
 pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
     source: &S,
     state: &StreamState,
-    stream_config: &Config,
+    (stream_config, frames): (&Config, OfflineFrames),
     steps: u32,
     at_steps: &[u32],
     executor: &E,
@@ -1057,20 +1277,37 @@ pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
         .map(|b| b.position)
         .chain(state.held_out.iter().copied())
         .collect();
-    let frames = (0..state.position)
+    let positions: Vec<u64> = (0..state.position)
         .filter(|p| !skipped.contains(p))
-        .map(|p| source.reload(p))
-        .collect::<Result<Vec<_>>>()?;
+        .collect();
     let mut config = *stream_config;
-    config.max_frames = frames.len().clamp(1, u16::MAX as usize) as u16;
+    if frames == OfflineFrames::AllWhole {
+        config.max_frames = positions.len().clamp(1, u16::MAX as usize) as u16;
+        config.ray_store = 0;
+    }
     config.steps = steps.max(1);
     config.warmup_steps = config.warmup_steps.min(config.steps);
     let plan = MemoryPlan::new(&config);
     let mut arena = vec![0u8; plan.total];
     let mut trainer =
         Trainer::new(config, &mut arena).map_err(|e| core_error(&source.info().name, e))?;
-    train::load_frames(&mut trainer, &frames)?;
-    drop(frames);
+    match frames {
+        OfflineFrames::AllWhole => {
+            let frames = (positions.iter())
+                .map(|&p| source.reload(p))
+                .collect::<Result<Vec<_>>>()?;
+            train::load_frames(&mut trainer, &frames)?;
+        }
+        OfflineFrames::StreamStore => {
+            for (arrival, &position) in positions.iter().enumerate() {
+                let frame = source.reload(position)?;
+                let (pixels, mask) = (&frame.pixels, frame.mask.as_deref());
+                trainer
+                    .ingest_frame(arrival as u32, frame.camera, frame.pose, pixels, mask)
+                    .map_err(|e| core_error(&frame.name, e))?;
+            }
+        }
+    }
     let mut points = Vec::new();
     let mut seconds = 0.0f64;
     for step in 0..config.steps {
@@ -1091,4 +1328,112 @@ pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
         }
     }
     Ok(points)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A ray reservoir takes the bytes of the store of whole frames it replaces, as plain
+    /// training carves that store (no loss-weighting buffers, no running loss per slot): never
+    /// more, and all but the last entry's worth and the running losses' bytes. Remembering more
+    /// frames leaves fewer pixels; by default a source that says its frame count is remembered
+    /// whole, unless that leaves the reservoir less than half the frames' pixel bytes.
+    #[test]
+    fn a_ray_reservoir_takes_the_bytes_of_the_whole_frames_it_replaces() {
+        let spacecraft = crate::presets::config_of(Path::new("test"), "preset", "spacecraft");
+        let base = Config {
+            loss_weighted_frames: true,
+            ..spacecraft.unwrap()
+        };
+        for (side, frames, store) in [(64usize, 120u64, 40u16), (240, 120, 40), (128, 5000, 8)] {
+            let info = SourceInfo {
+                name: "test".into(),
+                identity: "test".into(),
+                scene_box: Some(([-1.0; 3], [1.0; 3])),
+                background: [0.0; 3],
+                max_pixels: side * side,
+                frames: Some(frames),
+            };
+            let whole = stream_config(
+                &Config {
+                    loss_weighted_frames: false,
+                    ..base
+                },
+                &info,
+                (store, Keep::Frames),
+                Replacement::Fifo,
+                17,
+            )
+            .unwrap();
+            let rays = stream_config(
+                &base,
+                &info,
+                (store, Keep::Rays { remember: None }),
+                Replacement::Fifo,
+                17,
+            )
+            .unwrap();
+            let (whole_bytes, ray_bytes) =
+                (MemoryPlan::new(&whole).total, MemoryPlan::new(&rays).total);
+            assert!(
+                ray_bytes <= whole_bytes,
+                "{side} px: {ray_bytes} > {whole_bytes}"
+            );
+            let slack = 64 + orbit_nerf_core::RAY_ENTRY_BYTES + 4 * store as usize;
+            assert!(
+                whole_bytes - ray_bytes <= slack,
+                "{side} px: {whole_bytes} - {ray_bytes}"
+            );
+            assert!(rays.loss_weighted_frames && rays.ray_store > 0);
+            let pixel_bytes = rays.ray_store as usize * orbit_nerf_core::RAY_ENTRY_BYTES;
+            assert!(2 * pixel_bytes >= whole.frame_pixel_bytes().0, "{side} px");
+            if frames <= 1024 {
+                assert_eq!(rays.max_frames as u64, frames, "{side} px");
+            } else {
+                assert!(
+                    (store..1024).contains(&rays.max_frames),
+                    "{}",
+                    rays.max_frames
+                );
+            }
+            let fewer = stream_config(
+                &base,
+                &info,
+                (
+                    store,
+                    Keep::Rays {
+                        remember: Some(store),
+                    },
+                ),
+                Replacement::Fifo,
+                17,
+            )
+            .unwrap();
+            assert!(fewer.ray_store > rays.ray_store || rays.max_frames == store);
+        }
+        // Two frames of 24 x 24 px cannot pay for the loss weighting's buffers: whole frames,
+        // unless a number of frames to remember was asked for.
+        let info = SourceInfo {
+            name: "tiny".into(),
+            identity: "tiny".into(),
+            scene_box: Some(([-1.0; 3], [1.0; 3])),
+            background: [0.0; 3],
+            max_pixels: 24 * 24,
+            frames: Some(4),
+        };
+        let rays = |remember| {
+            stream_config(
+                &base,
+                &info,
+                (2, Keep::Rays { remember }),
+                Replacement::Fifo,
+                1,
+            )
+        };
+        let whole = rays(None).unwrap();
+        assert_eq!((whole.ray_store, whole.max_frames), (0, 2));
+        let refused = rays(Some(2)).unwrap_err().to_string();
+        assert!(refused.contains("--keep frames"), "{refused}");
+    }
 }

@@ -7,14 +7,14 @@
 //! caller shows, it learns from a [`StreamObserver`].
 
 use super::{
-    Control, Event, FixedSetPoint, FrameSource, OfflinePoint, Outcome, StreamSettings, StreamState,
-    fixed_set_curve, offline_reference, stream_config, write_curve,
+    Control, Event, FixedSetPoint, FrameSource, Keep, OfflineFrames, OfflinePoint, Outcome,
+    StreamSettings, StreamState, fixed_set_curve, offline_reference, stream_config, write_curve,
 };
 use crate::error::Result;
 use crate::pipeline::{self, CHECKPOINT_FILE, ChosenConfig};
 use crate::report::{Figures, ModelFigures, TrainingFigures};
 use crate::scene_box::box_text;
-use crate::train::RayonExecutor;
+use crate::train::{self, RayonExecutor};
 use crate::{io, presets};
 use orbit_nerf_core::{Config, MemoryPlan, Replacement, Trainer};
 use std::fmt::Write as _;
@@ -34,6 +34,10 @@ pub enum SourceKind {
     /// preset.
     WatchedFolder,
 }
+
+/// The fraction of a stream's schedule (after warm-up) at the peak learning rate before the
+/// cosine decay starts, unless the config file sets `lr_decay_start`.
+pub const STREAM_LR_DECAY_START: f32 = 0.75;
 
 /// The model a fresh stream trains (a resumed stream keeps its checkpoint's).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -67,6 +71,23 @@ impl ModelChoice {
         if let Some(seed) = self.seed {
             chosen.config.seed = seed;
         }
+        // A stream's own schedule, unless the config file says otherwise: rays drawn from
+        // frames in proportion to their running loss (new views get the steps), and the peak
+        // learning rate held for most of the stream rather than decayed before the last
+        // frames arrive.
+        let sets = |key: &str| file.map_or(Ok(false), |path| train::config_file_sets(path, key));
+        let mut own = Vec::new();
+        if !sets("loss_weighted_frames")? {
+            chosen.config.loss_weighted_frames = true;
+            own.push("loss_weighted_frames = true".to_string());
+        }
+        if !sets("lr_decay_start")? {
+            chosen.config.lr_decay_start = STREAM_LR_DECAY_START;
+            own.push(format!("lr_decay_start = {STREAM_LR_DECAY_START}"));
+        }
+        if !own.is_empty() {
+            let _ = write!(chosen.note, "; the stream's schedule: {}", own.join(", "));
+        }
         Ok(chosen)
     }
 }
@@ -79,8 +100,10 @@ pub struct StreamRequest {
     /// `checkpoint.snapshots/`), `anytime.csv`, `anytime.png`, `anytime_time.png`,
     /// `summary.md`, `metrics.json`.
     pub out: PathBuf,
-    /// Frame slots of the core's store (a fresh stream's).
+    /// The core's store takes the bytes of this many whole frames (a fresh stream's).
     pub store: u16,
+    /// What the store keeps in them (a fresh stream's).
+    pub keep: Keep,
     /// Replacement policy of a full store (a fresh stream's).
     pub replacement: Replacement,
     /// How the stream trains and reports (a fresh stream's; a resumed one keeps its own).
@@ -135,7 +158,8 @@ pub trait StreamObserver {
 pub enum Stage {
     /// Scoring every anytime point's snapshot on all held-out views; a unit is a point.
     FixedSet,
-    /// Training the offline reference (scored on the way); a unit is a step.
+    /// Training the offline references (the one on all frames scored on the way, then the one
+    /// on the stream's final store); a unit is a step.
     OfflineReference,
 }
 
@@ -175,6 +199,9 @@ pub struct OfflineReference {
     pub points: Vec<OfflinePoint>,
     /// Wall time of its training and scoring.
     pub seconds: f64,
+    /// The reference trained on what the stream's store holds at its end
+    /// ([`OfflineFrames::StreamStore`]), scored after its last step.
+    pub store: Option<OfflinePoint>,
 }
 
 impl StreamRequest {
@@ -222,12 +249,13 @@ impl StreamRequest {
                 ));
             }
             observer.note(&format!(
-                "streaming {} into a store of {} frames ({:?} replacement), {} steps per frame, {} threads; arena {:.1} MiB",
+                "streaming {} into {} ({:?} replacement), {} steps per frame, {} thread{}; arena {:.1} MiB",
                 source.info().name,
-                config.max_frames,
+                store_text(&config),
                 config.replacement,
                 state.settings.steps_per_frame,
                 self.threads,
+                if self.threads == 1 { "" } else { "s" },
                 MemoryPlan::new(&config).total as f64 / (1 << 20) as f64
             ));
             observer.start(state.position, source.info().frames.or(self.end_after));
@@ -268,22 +296,38 @@ impl StreamRequest {
             )?;
             let offline = if self.compare_offline {
                 let steps = trainer.state().step;
-                observer.progress(Stage::OfflineReference, 0, steps as u64);
+                let total = 2 * steps as u64;
+                observer.progress(Stage::OfflineReference, 0, total);
                 let started = Instant::now();
                 let at_steps: Vec<u32> = state.curve.iter().map(|p| p.steps).collect();
                 let points = offline_reference(
                     source,
                     &state,
-                    &config,
+                    (&config, OfflineFrames::AllWhole),
                     steps,
                     &at_steps,
                     &executor,
-                    &mut |step| {
-                        observer.progress(Stage::OfflineReference, step as u64 + 1, steps as u64)
-                    },
+                    &mut |step| observer.progress(Stage::OfflineReference, step as u64 + 1, total),
                 )?;
                 let seconds = started.elapsed().as_secs_f64();
-                Some(OfflineReference { points, seconds })
+                let store = offline_reference(
+                    source,
+                    &state,
+                    (&config, OfflineFrames::StreamStore),
+                    steps,
+                    &[],
+                    &executor,
+                    &mut |step| {
+                        let done = steps as u64 + step as u64 + 1;
+                        observer.progress(Stage::OfflineReference, done, total)
+                    },
+                )?
+                .pop();
+                Some(OfflineReference {
+                    points,
+                    seconds,
+                    store,
+                })
             } else {
                 None
             };
@@ -293,7 +337,7 @@ impl StreamRequest {
                 Some(&fixed_set),
                 offline.as_ref().map(|o| o.points.as_slice()),
             )?;
-            let summary = summary(&state, trainer, seconds, offline.as_ref());
+            let summary = summary(&state, trainer, seconds, &fixed_set, offline.as_ref());
             io::write_atomic(&self.out.join("summary.md"), summary.as_bytes())?;
             figures(&state, trainer, seconds, offline.as_ref()).write(&self.out)?;
             Ok(StreamEnd::Finished(Box::new(FinishedStream {
@@ -337,13 +381,40 @@ impl StreamRequest {
         let config = stream_config(
             &chosen.config,
             &info,
-            self.store,
+            (self.store, self.keep),
             self.replacement,
             self.settings.steps_per_frame,
+        )?;
+        // The store takes the bytes of `store` whole frames, which must fit the memory limit
+        // even where a ray reservoir (at most MAX_RAY_STORE pixels) would need fewer: so the
+        // frame in hand, the host's, fits too.
+        let whole = Config {
+            ray_store: 0,
+            max_frames: self.store,
+            ..config
+        };
+        let what = PathBuf::from(format!("the store of the stream of {}", source.info().name));
+        crate::memory::check_arena(
+            &what,
+            &MemoryPlan::new(&whole),
+            crate::memory::limit_or_default(self.memory_limit),
         )?;
         let capacity = config.max_frames as usize;
         let state = StreamState::new(self.settings.clone(), capacity, source.info());
         Ok((config, state))
+    }
+}
+
+/// What the store keeps, in words: `a store of N frames` or `a ray reservoir of N pixels
+/// remembering up to K frames`.
+pub fn store_text(config: &Config) -> String {
+    if config.ray_store > 0 {
+        format!(
+            "a ray reservoir of {} pixels remembering up to {} frames",
+            config.ray_store, config.max_frames
+        )
+    } else {
+        format!("a store of {} frames", config.max_frames)
     }
 }
 
@@ -386,6 +457,16 @@ fn figures(
             pose_refinement: None,
         });
     }
+    if let Some(store) = offline.and_then(|o| o.store.as_ref()) {
+        models.push(ModelFigures {
+            name: "offline on the stream's final store".into(),
+            mean: store.metrics,
+            views: Vec::new(),
+            training: None,
+            mean_at: None,
+            pose_refinement: None,
+        });
+    }
     Figures::new("stream", models)
 }
 
@@ -396,6 +477,7 @@ fn summary(
     state: &StreamState,
     trainer: &Trainer<'_>,
     seconds: f64,
+    fixed_set: &[FixedSetPoint],
     offline: Option<&OfflineReference>,
 ) -> String {
     let mut text = String::from("# Stream summary\n\n");
@@ -418,6 +500,17 @@ fn summary(
         seconds,
         seconds / state.position.max(1) as f64
     );
+    if let Some(ms) = state.settings.budget_ms {
+        let budget = &state.budget_steps;
+        let _ = writeln!(
+            text,
+            "- real-time mode: {ms} ms per frame ({:.2} frames per second); training steps a frame managed: {:.1} on average, {} to {} (the result depends on this machine's speed and load)",
+            1000.0 / ms as f64,
+            budget.mean(),
+            budget.min,
+            budget.max
+        );
+    }
     for bad in &state.bad {
         let _ = writeln!(text, "- {bad}");
     }
@@ -426,6 +519,38 @@ fn summary(
             text,
             "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views",
             last.psnr, last.psnr_right, last.psnr_foreground, last.ssim, last.held_out_views
+        );
+    }
+    if let Some(last) = fixed_set.last() {
+        let psnr: Vec<String> = fixed_set
+            .iter()
+            .map(|p| format!("{:.2}", p.metrics.psnr_full))
+            .collect();
+        let fall = fixed_set
+            .windows(2)
+            .map(|w| w[0].metrics.psnr_full - w[1].metrics.psnr_full)
+            .fold(0.0f64, f64::max);
+        let _ = writeln!(
+            text,
+            "- fixed set (all {} held-out views) at each point: PSNR {} dB; largest fall from one point to the next {:.2} dB",
+            last.views,
+            psnr.join(", "),
+            fall
+        );
+    }
+    let views = super::forgetting(&state.curve, fixed_set);
+    let change = |v: &super::ViewForgetting| v.last_psnr - v.first_psnr;
+    if let Some(worst) = views.iter().min_by(|a, b| change(a).total_cmp(&change(b))) {
+        let mean = views.iter().map(change).sum::<f64>() / views.len() as f64;
+        let _ = writeln!(
+            text,
+            "- forgetting: each held-out view scored at the first point after it arrived and at the end: mean change {:+.2} dB; worst {:+.2} dB (arrival {}, first scored at {} frames seen: {:.2} -> {:.2} dB)",
+            mean,
+            change(worst),
+            worst.position,
+            worst.first_frames_seen,
+            worst.first_psnr,
+            worst.last_psnr
         );
     }
     if let Some((reference, last)) = offline.and_then(|o| Some((o, o.points.last()?))) {
@@ -441,14 +566,26 @@ fn summary(
             metrics.psnr_foreground,
             metrics.ssim_full
         );
+        if let Some(store) = &reference.store {
+            let m = &store.metrics;
+            let _ = writeln!(
+                text,
+                "- offline on the stream's final store ({}, same steps, {:.1} s of training): held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}; the stream is {:+.2} dB from it (the cost of learning while frames arrive) and it is {:+.2} dB from the offline reference (the cost of the store)",
+                store_text(trainer.config()),
+                store.seconds,
+                m.psnr_full,
+                m.psnr_right,
+                m.psnr_foreground,
+                m.ssim_full,
+                state.curve.last().map_or(f64::NAN, |p| p.psnr) - m.psnr_full,
+                m.psnr_full - metrics.psnr_full
+            );
+        }
     }
-    if let (Some(first), Some(last)) = (
-        state
-            .curve
-            .iter()
-            .find(|p| p.frames_seen >= trainer.config().max_frames as u64),
-        state.curve.last(),
-    ) {
+    // Memory from the first point on: the arena is allocated once before the first frame
+    // (a ray reservoir, the store and its table of frames included), so any growth after it
+    // would be the host's.
+    if let (Some(first), Some(last)) = (state.curve.first(), state.curve.last()) {
         let _ = writeln!(
             text,
             "- resident memory: {:.1} MiB at {} frames seen, {:.1} MiB at {}",
@@ -456,4 +593,53 @@ fn summary(
         );
     }
     text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A stream takes its own schedule (loss-weighted frame draws, the peak rate held for
+    /// most of the stream) for every field the config file leaves to the preset, and the
+    /// file's value for a field it sets, even one equal to the preset's.
+    #[test]
+    fn a_stream_takes_its_own_schedule_unless_the_config_file_sets_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let choose = |text: Option<&str>| {
+            let file = text.map(|text| {
+                let path = dir.path().join("config.toml");
+                std::fs::write(&path, text).unwrap();
+                path
+            });
+            let choice = ModelChoice {
+                preset: Some("spacecraft".into()),
+                config_file: file,
+                seed: None,
+            };
+            choice.choose(&SourceKind::WatchedFolder).unwrap()
+        };
+        let own = choose(None);
+        assert!(own.config.loss_weighted_frames);
+        assert_eq!(own.config.lr_decay_start, STREAM_LR_DECAY_START);
+        assert!(own.note.contains("the stream's schedule"), "{}", own.note);
+        let preset = pipeline::preset_config(Some("spacecraft"), presets::SPACECRAFT, "", None)
+            .unwrap()
+            .config;
+        assert!(!preset.loss_weighted_frames && preset.lr_decay_start == 0.0);
+
+        let stated = choose(Some(
+            "[config]\nlr_decay_start = 0.0\nloss_weighted_frames = false\n",
+        ));
+        assert!(!stated.config.loss_weighted_frames);
+        assert_eq!(stated.config.lr_decay_start, 0.0);
+        assert!(
+            !stated.note.contains("the stream's schedule"),
+            "{}",
+            stated.note
+        );
+
+        let one = choose(Some("lr_decay_start = 0.5\n"));
+        assert!(one.config.loss_weighted_frames);
+        assert_eq!(one.config.lr_decay_start, 0.5);
+    }
 }

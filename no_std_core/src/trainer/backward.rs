@@ -38,10 +38,15 @@ impl Chunk<'_> {
                 );
                 let target = ray.target;
                 let mut d_colour = [0.0f32; 3];
+                let mut ray_error = 0.0f32;
                 for ch in 0..3 {
                     let e = colour[ch] - target[ch];
                     self.report.squared_error += e * e;
+                    ray_error += e * e;
                     d_colour[ch] = 2.0 * e * norm;
+                }
+                if let Some(loss) = self.ray_loss.get_mut(first + r - self.first_ray) {
+                    *loss = ray_error;
                 }
                 if let Some(ch) = shared.jacobian_channel {
                     // A refinement's Jacobian pass: the backward pass of the one channel's

@@ -76,6 +76,9 @@ pub(super) struct Chunk<'a> {
     pub(super) plane_values: &'a mut [f32],
     /// d loss / d origin and d loss / d direction of each of the chunk's rays (pose correction).
     pub(super) ray_grads: &'a mut [f32],
+    /// Each of the chunk's rays' squared colour error over its channels, for the frames'
+    /// running losses (empty unless `Config::loss_weighted_frames`).
+    pub(super) ray_loss: &'a mut [f32],
     /// Output gradients of one layer in lane-major order (the weight-gradient kernel's input).
     pub(super) lane_major: &'a mut [f32],
     /// First ray of the batch this chunk works on, and how many.

@@ -76,8 +76,9 @@ impl<'a> Trainer<'a> {
         let occupancy_bits = carver.take::<u64>(c.occupancy_cells().div_ceil(64))?;
         let occupancy_density = carver.take::<f32>(t(c.occupancy_cells()))?;
         tally(&carver, &mut used.occupancy);
-        let pixels = carver.take::<u8>(frames * c.max_pixels_per_frame as usize * 3)?;
-        let masks = carver.take::<u8>(frames * c.max_pixels_per_frame as usize)?;
+        let (pixel_bytes, mask_bytes) = c.frame_pixel_bytes();
+        let pixels = carver.take::<u8>(t(pixel_bytes))?;
+        let masks = carver.take::<u8>(t(mask_bytes))?;
         let meta = carver.take::<FrameMeta>(frames)?;
         let occupied = carver.take::<u16>(frames)?;
         let frame_param_slice = carver.take::<f32>(frames * frame_params)?;
@@ -123,6 +124,7 @@ impl<'a> Trainer<'a> {
             let (activations, gradients) = act.split_at_mut(rows);
             let lane_major = carver.take::<f32>(t(LANES * widest_layer(c)))?;
             let ray_grads = carver.take::<f32>(t(chunk_rays * RAY_GRAD_FLOATS))?;
+            let ray_loss = carver.take::<f32>(t(chunk_rays * c.loss_weighted_frames as usize))?;
             let chunk = Chunk {
                 plane_grads,
                 touched,
@@ -145,6 +147,7 @@ impl<'a> Trainer<'a> {
                 plane_values,
                 lane_major,
                 ray_grads,
+                ray_loss,
                 first_ray: i * chunk_rays,
                 ray_count: chunk_rays,
                 report: ChunkReport::default(),
@@ -189,6 +192,8 @@ impl<'a> Trainer<'a> {
                 occupied,
                 len: 0,
                 max_pixels: t(c.max_pixels_per_frame as usize),
+                foreground_rays: c.foreground_rays(),
+                keep_rays: c.ray_store > 0,
             },
             frame_params: frame_param_slice,
             frame_m,

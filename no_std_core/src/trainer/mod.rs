@@ -20,7 +20,7 @@ use crate::config::{
     density_activation_rows, forward_sample_floats, sample_floats, widest_layer,
 };
 use crate::field::{self, PlaneGeometry, PlaneGrads, Row};
-use crate::frames::{FrameMeta, FrameStore, mean_brightness};
+use crate::frames::{FrameMeta, FrameStore, RayCounts, mean_brightness};
 use crate::fused;
 use crate::optim::{self, AdamStep};
 use crate::profile::{Bucket, Laps, Profiler, Stage, StageTimes, Timer};
@@ -99,6 +99,10 @@ pub struct TrainState {
     /// Updates applied to the pose corrections (their Adam's time step: their moments
     /// start at zero when they start learning, after `pose_warmup_steps`).
     pub pose_updates: u32,
+    /// Keeps the counts below on 8 bytes (the state is stored as its bytes).
+    pub padding: u32,
+    /// How full the ray reservoir is and how much it was offered (zero for whole frames).
+    pub rays: RayCounts,
 }
 
 /// The trainer and everything it owns, all borrowed from one arena.

@@ -221,7 +221,8 @@ impl<'a> Trainer<'a> {
     /// left out) plus the labels' Gaussian prior (`pose_prior_rotation_deg`,
     /// `pose_prior_position`). The result replaces the slot's correction; its uncertainty
     /// comes from the posterior's information matrix. Without pose correction, or with no
-    /// iterations, nothing changes and the fit says so (`steps_taken` 0).
+    /// iterations, nothing changes and the fit says so (`steps_taken` 0). A store that keeps
+    /// a ray reservoir has no whole frame to refine against: refused (`ray_store`).
     pub fn refine_pose<E: Executor>(
         &mut self,
         executor: &E,
@@ -232,6 +233,9 @@ impl<'a> Trainer<'a> {
         let n = c.frame_params();
         if self.frames.meta.get(slot).is_none_or(|m| m.occupied == 0) {
             return Err(Error::InvalidFrame { field: "slot" });
+        }
+        if self.frames.keeps_rays() {
+            return Err(Error::InvalidConfig { field: "ray_store" });
         }
         const MOST: usize = 128 + POSE_PARAMS;
         let mut params = [0.0f32; MOST];

@@ -40,7 +40,11 @@ impl<'a> Trainer<'a> {
     }
 
     /// Put a frame into `slot`. Its embedding starts at the mean of the other frames'
-    /// embeddings, its pose correction at zero, and its optimizer moments are cleared.
+    /// embeddings, its pose correction at zero, and its optimizer moments are cleared. With a
+    /// ray reservoir the frame's pixels are offered to it (taking over the entries of the
+    /// frame the slot held before). With `Config::loss_weighted_frames` its running loss
+    /// starts at the largest of the others', so it is drawn as often as the worst-fitted one
+    /// until its own rays say otherwise.
     pub fn set_frame(
         &mut self,
         slot: usize,
@@ -50,7 +54,20 @@ impl<'a> Trainer<'a> {
         mask: Option<&[u8]>,
     ) -> Result<(), Error> {
         self.require_training()?;
+        let replaced = self.frames.meta(slot).is_some();
+        let largest_loss = self.largest_frame_loss();
         self.frames.set(slot, camera, pose, pixels, mask)?;
+        if let Some(meta) = self.frames.meta.get_mut(slot) {
+            meta.loss = largest_loss;
+        }
+        self.frames.offer_rays(
+            slot,
+            pixels,
+            mask,
+            self.config.seed,
+            &mut self.state.rays,
+            replaced,
+        );
         let n = self.config.frame_params();
         let dim = self.config.embedding_dim as usize;
         let mut mean = [0.0f32; 128];
@@ -76,9 +93,10 @@ impl<'a> Trainer<'a> {
         Ok(())
     }
 
-    /// Empty frame slot `slot` (no-op if it is already empty or out of range).
+    /// Empty frame slot `slot` (no-op if it is already empty or out of range), with its
+    /// entries in the ray reservoir.
     pub fn clear_frame(&mut self, slot: usize) {
-        self.frames.clear(slot);
+        self.frames.clear(slot, &mut self.state.rays);
     }
 
     /// Stream a frame into the store. `arrival` counts the frames offered before it (it keys

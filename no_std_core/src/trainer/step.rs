@@ -133,6 +133,9 @@ impl<'a> Trainer<'a> {
             report.skipped = true;
             None
         };
+        if adam.is_some() && c.loss_weighted_frames {
+            self.update_frame_losses();
+        }
         let pose_learns = adam.is_some() && c.pose_learns_at(self.state.step);
         if pose_learns {
             self.state.pose_updates += 1;
@@ -195,6 +198,30 @@ impl<'a> Trainer<'a> {
         report
     }
 }
+
+impl<'a> Trainer<'a> {
+    /// Move each frame's running loss towards its rays' squared errors of this step, a ray at
+    /// a time in batch order (each ray by `1 / FRAME_LOSS_RAYS` of the way, so a frame's loss
+    /// follows its last few hundred rays).
+    fn update_frame_losses(&mut self) {
+        for chunk in self.chunks.iter() {
+            for (k, &error) in chunk.ray_loss.iter().enumerate() {
+                let slot = self
+                    .ray_frames
+                    .get(chunk.first_ray + k)
+                    .copied()
+                    .unwrap_or(0);
+                if let Some(meta) = self.frames.meta.get_mut(slot as usize) {
+                    let mse = error * (1.0 / 3.0);
+                    meta.loss += (mse - meta.loss) * (1.0 / FRAME_LOSS_RAYS);
+                }
+            }
+        }
+    }
+}
+
+/// A frame's running loss moves this many rays' worth towards each new ray's error.
+const FRAME_LOSS_RAYS: f32 = 64.0;
 
 /// Texels `first_texel ..` (whole bitmap words): each chunk's gradients and touched bits of
 /// them, to be summed into the first chunk's.

@@ -879,3 +879,239 @@ fn a_step_given_up_part_way_leaves_the_trainer_as_it_was() {
     assert_eq!(stopped.state().step, 6);
     assert!(stopped.state().pose_updates > 0);
 }
+
+/// The small config with a ray reservoir of `rays` pixels, half of them foreground, and room
+/// for 64 frames' parameters.
+fn reservoir_config(rays: u32) -> Config {
+    let mut c = small_config();
+    c.max_frames = 64;
+    c.ray_store = rays;
+    c.foreground_fraction = 0.5;
+    c
+}
+
+/// Test frame `k` of the reservoir tests: red says which frame, green and blue where the
+/// pixel is; odd frames have a mask that lets the left half through.
+fn numbered_frame(k: u8) -> ([u8; 8 * 8 * 3], Option<[u8; 64]>) {
+    let mut pixels = [0u8; 8 * 8 * 3];
+    for (i, px) in pixels.chunks_exact_mut(3).enumerate() {
+        px.copy_from_slice(&[10 + k, 20 + 20 * (i % 8) as u8, 20 + 20 * (i / 8) as u8]);
+    }
+    let mask = (k % 2 == 1).then(|| core::array::from_fn(|i| if i % 8 < 4 { 255 } else { 0 }));
+    (pixels, mask)
+}
+
+/// Ingest [`numbered_frame`] `k` as arrival `k`, at the test pose.
+fn ingest_numbered_frame(trainer: &mut Trainer<'_>, k: u8) -> Ingested {
+    let (camera, pose) = test_frame_pose();
+    let (pixels, mask) = numbered_frame(k);
+    let mask = mask.as_ref().map(|m| &m[..]);
+    trainer
+        .ingest_frame(k as u32, camera, pose, &pixels, mask)
+        .unwrap()
+}
+
+/// Entries per slot of one reservoir part, checking that each entry holds its own frame's
+/// pixel at its position and its mask value.
+fn reservoir_counts(trainer: &Trainer<'_>, part: usize, first_frame: &[u8; 64]) -> [u32; 64] {
+    let mut counts = [0u32; 64];
+    for index in 0..trainer.state.rays.filled[part] as usize {
+        let entry = trainer.frames.ray_entry(part, index).unwrap();
+        let (x, y) = entry.position();
+        let k = first_frame[entry.slot()] + (entry.slot() as u8);
+        let (pixels, mask) = numbered_frame(k);
+        let at = (y * 8 + x) as usize;
+        assert_eq!(
+            entry.rgb,
+            pixels[at * 3..at * 3 + 3],
+            "entry {index} of part {part}"
+        );
+        assert_eq!(entry.alpha, mask.map_or(255, |m| m[at]));
+        counts[entry.slot()] += 1;
+    }
+    counts
+}
+
+/// A ray reservoir fed 40 frames holds each of them alike (the first ones are not crowded
+/// out by the last, nor the last by the first), every entry is its own frame's pixel with its
+/// mask value, no pixel is kept twice, and both parts are full. Emptying a slot removes its
+/// entries; a frame put into an occupied slot takes over its predecessor's entries, up to its
+/// share and to the pixels of its region.
+#[test]
+fn a_ray_reservoir_keeps_every_frame_alike() {
+    let config = reservoir_config(4000);
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    let (camera, pose) = test_frame_pose();
+    for k in 0..40u8 {
+        let stored = ingest_numbered_frame(&mut trainer, k);
+        assert_eq!(stored, Ingested::Stored { slot: k as usize });
+        assert!(trainer.frames.pixels(k as usize).is_none());
+    }
+    assert_eq!(trainer.state.rays.filled, [2000, 2000]);
+    // Each frame takes an equal share of each part's 2000 places among the frames held, but
+    // no more than the 64 pixels its region holds (the foreground box is the whole 8 x 8
+    // frame here): the first 31 fill the parts, and 50 places per frame at the end.
+    assert_eq!(trainer.state.rays.offered, [40, 40]);
+    let zero = [0u8; 64];
+    for part in 0..2 {
+        let counts = reservoir_counts(&trainer, part, &zero);
+        assert!(
+            counts[..40].iter().all(|&n| (25..=80).contains(&n)),
+            "part {part}: {counts:?}"
+        );
+        let (early, late): (u32, u32) = (counts[..20].iter().sum(), counts[20..40].iter().sum());
+        assert!(
+            early.abs_diff(late) * 10 < early + late,
+            "part {part}: {early} vs {late}"
+        );
+    }
+    // No pixel is kept twice.
+    assert!(reservoir_pixels_are_distinct(&trainer));
+
+    let before = reservoir_counts(&trainer, 1, &zero);
+    trainer.clear_frame(3);
+    let after = reservoir_counts(&trainer, 1, &zero);
+    assert_eq!(after[3], 0);
+    assert_eq!(trainer.state.rays.filled[1], 2000 - before[3]);
+    // Frame 45 into slot 5 (frame 5's): slot 5's entries now hold frame 45's pixels.
+    let (pixels, mask) = numbered_frame(45);
+    trainer
+        .set_frame(5, camera, pose, &pixels, mask.as_ref().map(|m| &m[..]))
+        .unwrap();
+    let mut first = [0u8; 64];
+    first[5] = 40;
+    // Its share among the 39 frames held is 52 places: it takes over 52 of frame 5's.
+    let replaced = reservoir_counts(&trainer, 1, &first);
+    let share = 2000u32.div_ceil(39);
+    assert!(after[5] >= share, "{}", after[5]);
+    assert_eq!(replaced[5], share);
+    // A frame whose foreground box holds fewer pixels (one lit pixel in the corner: a 5 x 5
+    // box with the margin) than its predecessor's entries keeps one entry per pixel of it;
+    // the rest of the predecessor's entries leave the part.
+    let filled = trainer.state.rays.filled[1];
+    let mut corner = [0u8; 64];
+    corner[0] = 255;
+    trainer
+        .set_frame(6, camera, pose, &pixels, Some(&corner))
+        .unwrap();
+    let in_slot_6 = (0..trainer.state.rays.filled[1] as usize)
+        .filter(|&i| trainer.frames.ray_entry(1, i).unwrap().slot() == 6)
+        .count() as u32;
+    assert!(before[6] > 25, "{}", before[6]);
+    assert_eq!(in_slot_6, 25);
+    assert_eq!(trainer.state.rays.filled[1], filled - (before[6] - 25));
+    assert!(reservoir_pixels_are_distinct(&trainer));
+}
+
+/// Whether every reservoir entry of a part is a different pixel of its slot (8 x 8 frames).
+fn reservoir_pixels_are_distinct(trainer: &Trainer<'_>) -> bool {
+    (0..2).all(|part| {
+        let mut seen = [[false; 64]; 64];
+        (0..trainer.state.rays.filled[part] as usize).all(|index| {
+            let entry = trainer.frames.ray_entry(part, index).unwrap();
+            let (x, y) = entry.position();
+            let pixel = &mut seen[entry.slot()][(y * 8 + x) as usize];
+            !core::mem::replace(pixel, true)
+        })
+    })
+}
+
+/// Training from a ray reservoir depends only on the seed and the frames in order, and a
+/// trainer restored from its sections goes on bit for bit.
+#[test]
+fn training_from_a_ray_reservoir_is_deterministic_and_resumes_exactly() {
+    let config = reservoir_config(600);
+    let plan = MemoryPlan::new(&config);
+    let mut arenas = [[0u8; 1 << 19]; 3];
+    let [a, b, c] = &mut arenas;
+    fn run(config: Config, arena: &mut [u8], steps: u32) -> Trainer<'_> {
+        let mut trainer = Trainer::new(config, arena).unwrap();
+        for k in 0..12u8 {
+            ingest_numbered_frame(&mut trainer, k);
+            for _ in 0..steps {
+                trainer.step(&Sequential).unwrap();
+            }
+        }
+        trainer
+    }
+    let first = run(config, &mut a[..plan.total], 2);
+    let second = run(config, &mut b[..plan.total], 2);
+    assert_eq!(first.sections(), second.sections());
+    assert!(first.state.updates > 0 && first.state.skipped == 0);
+    let mut restored = Trainer::new(config, &mut c[..plan.total]).unwrap();
+    for (name, bytes) in second.sections() {
+        restored.restore_section(name, bytes).unwrap();
+    }
+    let (mut second, mut first) = (second, first);
+    for trainer in [&mut first, &mut second, &mut restored] {
+        trainer.step(&Sequential).unwrap();
+    }
+    assert_eq!(restored.sections(), first.sections());
+    // A whole-frame refinement has no frame to read here.
+    assert_eq!(
+        restored.refine_pose(&Sequential, 0).map(|_| ()),
+        Err(Error::InvalidConfig { field: "ray_store" })
+    );
+}
+
+/// Share of a few batches' rays drawn from slot 0 of a trainer whose two frames have running
+/// losses `losses`.
+fn share_of_slot_zero(config: Config, losses: [f32; 2], ray_store: u32) -> f64 {
+    let mut config = config;
+    config.ray_store = ray_store;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 19];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    let (camera, pose) = test_frame_pose();
+    for slot in 0..2 {
+        let (pixels, _) = numbered_frame(slot as u8);
+        trainer
+            .set_frame(slot, camera, pose, &pixels, None)
+            .unwrap();
+        trainer.frames.meta[slot].loss = losses[slot];
+    }
+    let (mut zero, mut all) = (0usize, 0usize);
+    for step in 0..20 {
+        trainer.state.step = step;
+        trainer.sample_rays(&Sequential).unwrap();
+        zero += trainer.ray_frames.iter().filter(|&&s| s == 0).count();
+        all += trainer.ray_frames.len();
+    }
+    zero as f64 / all as f64
+}
+
+/// With `loss_weighted_frames`, frames are drawn in proportion to their running loss (a
+/// frame at a sixteenth of the largest loss gets about one ray in seventeen), for whole frames
+/// and a ray reservoir alike; without it, or before any loss is known, uniformly. A training
+/// step moves the drawn frames' losses towards their rays' errors, and a frame put in starts
+/// at the largest loss.
+#[test]
+fn loss_weighted_draws_follow_the_frames_running_losses() {
+    let mut config = small_config();
+    config.loss_weighted_frames = true;
+    for ray_store in [0, 400] {
+        let weighted = share_of_slot_zero(config, [1.0, 1.0 / 16.0], ray_store);
+        assert!((0.88..0.99).contains(&weighted), "{ray_store}: {weighted}");
+        let unknown = share_of_slot_zero(config, [0.0, 0.0], ray_store);
+        assert!((0.35..0.65).contains(&unknown), "{ray_store}: {unknown}");
+    }
+    let mut plain = config;
+    plain.loss_weighted_frames = false;
+    let uniform = share_of_slot_zero(plain, [1.0, 1.0 / 16.0], 0);
+    assert!((0.35..0.65).contains(&uniform), "{uniform}");
+
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 19];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    put_test_frame(&mut trainer);
+    assert_eq!(trainer.frames.meta[0].loss, 0.0);
+    trainer.step(&Sequential).unwrap();
+    let learned = trainer.frames.meta[0].loss;
+    assert!(learned > 0.0 && learned.is_finite(), "{learned}");
+    let (camera, pose) = test_frame_pose();
+    let (pixels, _) = numbered_frame(3);
+    trainer.set_frame(1, camera, pose, &pixels, None).unwrap();
+    assert_eq!(trainer.frames.meta[1].loss, learned);
+}
