@@ -47,6 +47,7 @@ fn settings() -> StreamSettings {
         checkpoint_every: 4,
         fit_steps: 2,
         budget_ms: None,
+        settle_steps: 4,
     }
 }
 
@@ -84,7 +85,7 @@ fn stream_api_stopped_by(
             source.info(),
             store,
             Replacement::Novelty,
-            settings().steps_per_frame,
+            (settings().steps_per_frame, settings().settle_steps),
         )
         .unwrap();
         let state = StreamState::new(settings(), config.max_frames as usize, source.info());
@@ -174,6 +175,7 @@ fn deterministic_part(state: &StreamState) -> impl PartialEq + std::fmt::Debug {
         state.rejected,
         state.held_out.clone(),
         state.slot_positions.clone(),
+        state.settle_from,
         state
             .curve
             .iter()
@@ -215,6 +217,14 @@ fn stop_and_resume(data: &Path, dir: &Path, keep: Keep) {
         "{whole_state:?}"
     );
     assert!(whole_state.curve.len() >= 6);
+    // 3 steps for each of the 30 usable frames, then the 4 steps of the settle, with a point
+    // before it and one after.
+    let settle_from = 30 * settings().steps_per_frame;
+    assert_eq!(whole_state.settle_from, Some(settle_from));
+    let ends: Vec<(u64, u32)> = (whole_state.curve[whole_state.curve.len() - 2..].iter())
+        .map(|p| (p.frames_seen, p.steps))
+        .collect();
+    assert_eq!(ends, [(30, settle_from), (30, settle_from + 4)]);
     if let Keep::Rays { remember } = keep {
         let (config, _) = stream::load(&whole).unwrap();
         let saved = checkpoint::load(&whole).unwrap();
@@ -231,6 +241,20 @@ fn stop_and_resume(data: &Path, dir: &Path, keep: Keep) {
         (outcome, stopped.position, saved_step(&parts)),
         (Outcome::Stopped, 13, 38)
     );
+    // Stopped again within the settle, then resumed to the end.
+    let (outcome, stopped) = stream_api(
+        &mut open(),
+        (6, keep),
+        &parts,
+        Some(settle_from + 2),
+        true,
+        &mut |_| {},
+    );
+    assert_eq!(
+        (outcome, stopped.position, stopped.settle_from),
+        (Outcome::Stopped, 30, Some(settle_from))
+    );
+    assert_eq!(saved_step(&parts), settle_from + 2);
     let (outcome, resumed) = stream_api(&mut open(), (6, keep), &parts, None, true, &mut |_| {});
     assert_eq!(outcome, Outcome::Finished);
     assert_eq!(
@@ -594,7 +618,10 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
         .section("state")
         .map(|bytes| u32::from_le_bytes(bytes[..4].try_into().unwrap()))
         .unwrap();
-    assert_eq!(steps, 7 * settings().steps_per_frame);
+    assert_eq!(
+        steps,
+        7 * settings().steps_per_frame + settings().settle_steps
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -851,8 +878,9 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
     // Every usable frame trains (the held-out ones too, once the store holds a frame).
     assert_eq!(budget.frames, 12);
     assert!(budget.min >= 1 && budget.max >= budget.min, "{budget:?}");
+    // Then the settle's steps, as many as asked, whatever the budget.
     assert_eq!(
-        Some(budget.steps as u32),
+        Some(budget.steps as u32 + settings().settle_steps),
         finished.state.curve.last().map(|p| p.steps)
     );
     let summary = &finished.summary;
@@ -866,6 +894,10 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
     );
     assert!(
         summary.contains("fixed set (all 3 held-out views)"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("the last after a settle of 4 steps"),
         "{summary}"
     );
     assert!(summary.contains("- forgetting: "), "{summary}");

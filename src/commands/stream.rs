@@ -63,6 +63,12 @@ pub struct StreamArgs {
     /// schedule expects per frame).
     #[arg(long, default_value_t = 17, value_parser = clap::value_parser!(u32).range(1..))]
     pub steps_per_frame: u32,
+    /// Training steps on the store after the source ends (the settle, 0 to 10^7): the
+    /// learning rate stays at its peak until the last arrival and decays over them, so the
+    /// last frames get the steps the first ones had; the settle gets its own point on the
+    /// anytime curve.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=10_000_000))]
+    pub settle_steps: u32,
     /// Real-time mode: after each usable frame, train until this many milliseconds (1 to
     /// 3600000) have passed since it arrived, at least one step; the summary says how many
     /// steps frames managed. The result then depends on the machine's speed and load
@@ -216,6 +222,7 @@ fn request(args: &StreamArgs) -> StreamRequest {
             eval_every: args.eval_every,
             checkpoint_every: args.checkpoint_every,
             fit_steps: args.fit_steps,
+            settle_steps: args.settle_steps,
         },
         model: ModelChoice {
             preset: args.preset.clone(),

@@ -72,6 +72,11 @@ pub struct StreamSettings {
     pub checkpoint_every: u64,
     /// Steps fitting a held-out view's embedding on its left half.
     pub fit_steps: u32,
+    /// Steps trained on the store after the source ends (the settle), with the learning rate
+    /// decaying over them: the frames that came last get the steps the first ones had, and
+    /// the schedule need not decay while frames still arrive. 0: none.
+    #[serde(default)]
+    pub settle_steps: u32,
 }
 
 /// The training steps frames managed in a real-time stream's budget
@@ -143,7 +148,8 @@ pub struct AnytimePoint {
     pub ssim_right: f64,
     /// Mean PSNR of the foreground (NaN without masks).
     pub psnr_foreground: f64,
-    /// Mean wall time per arrival since the previous point (ingest and training, not waiting).
+    /// Mean wall time per arrival since the previous point (ingest and training, not
+    /// waiting); NaN for the point after the settle, which had no arrival.
     pub seconds_per_frame: f64,
     /// Wall time of ingest and training since the stream started (across resumes; not
     /// waiting, scoring or checkpointing).
@@ -188,11 +194,12 @@ impl std::fmt::Display for AnytimePoint {
                 self.psnr, self.ssim, self.held_out_views
             )?;
         }
-        write!(
-            f,
-            ", {:.2} s/frame, RSS {:.1} MiB",
-            self.seconds_per_frame, self.rss_mib
-        )
+        if self.seconds_per_frame.is_nan() {
+            f.write_str(" (after the settle)")?;
+        } else {
+            write!(f, ", {:.2} s/frame", self.seconds_per_frame)?;
+        }
+        write!(f, ", RSS {:.1} MiB", self.rss_mib)
     }
 }
 
@@ -226,6 +233,9 @@ pub struct StreamState {
     /// Real-time mode: the steps each frame managed in its budget.
     #[serde(default)]
     pub budget_steps: BudgetSteps,
+    /// The trainer's step count when the settle began (the source had ended); `None` before.
+    #[serde(default)]
+    pub settle_from: Option<u32>,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
     /// This session's training steps, rays and samples (since the stream started or
@@ -251,6 +261,7 @@ impl StreamState {
             bad: Vec::new(),
             curve: Vec::new(),
             budget_steps: BudgetSteps::default(),
+            settle_from: None,
             seconds: 0.0,
             session: StepTally::default(),
         }
@@ -352,16 +363,17 @@ pub const DEFAULT_REMEMBER: u16 = 1024;
 
 /// The config of a stream: `base` with the source's scene box and background, a store of the
 /// bytes of `store` whole frames of the source's frame size kept as `keep` says, the
-/// replacement policy, and a schedule over the steps the source's frames will get (when it
-/// says how many it has; otherwise `base.steps`). With [`Keep::Rays`] the reservoir takes what
-/// the whole frames would have taken less what remembering `remember` frames' parameters
-/// adds, so the arena is no larger than the whole frames' one; refused when no pixel is left.
+/// replacement policy, and a schedule over the steps the source's frames will get and the
+/// settle after them (when it says how many it has; otherwise `base.steps`). With
+/// [`Keep::Rays`] the reservoir takes what the whole frames would have taken less what
+/// remembering `remember` frames' parameters adds, so the arena is no larger than the whole
+/// frames' one; refused when no pixel is left.
 pub fn stream_config(
     base: &Config,
     info: &SourceInfo,
     (store, keep): (u16, Keep),
     replacement: Replacement,
-    steps_per_frame: u32,
+    (steps_per_frame, settle_steps): (u32, u32),
 ) -> Result<Config> {
     let (aabb_min, aabb_max) = info.scene_box.ok_or_else(|| {
         HostError::invalid(
@@ -413,7 +425,8 @@ pub fn stream_config(
     }
     c.replacement = replacement;
     if let Some(frames) = info.frames {
-        c.steps = (frames.saturating_mul(steps_per_frame as u64)).clamp(1, u32::MAX as u64) as u32;
+        let steps = frames.saturating_mul(steps_per_frame as u64) + settle_steps as u64;
+        c.steps = steps.clamp(1, u32::MAX as u64) as u32;
     }
     c.warmup_steps = c.warmup_steps.min(c.steps);
     Ok(c)
@@ -600,15 +613,48 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             ),
         ));
     }
-    if state
-        .curve
-        .last()
-        .is_none_or(|p| p.frames_seen < state.position)
+    if state.settle_from.is_none()
+        && state
+            .curve
+            .last()
+            .is_none_or(|p| p.frames_seen < state.position)
     {
         let per_frame = window_seconds / window_frames.max(1) as f64;
         add_point(
             trainer, executor, source, state, control, per_frame, on_event,
         )?;
+    }
+    if state.settings.settle_steps > 0 {
+        // The settle: the store trained on once the source has ended (a resumed stream
+        // finishes the one it began), then its own point on the curve.
+        let from = *state.settle_from.get_or_insert(trainer.state().step);
+        let owed =
+            (from.saturating_add(state.settings.settle_steps)).saturating_sub(trainer.state().step);
+        if owed > 0 {
+            let started = Instant::now();
+            let name = format!("{} (settle)", source.info().name);
+            let (_, stopped) = train_frame(trainer, executor, state, control, owed, &name)?;
+            state.seconds += started.elapsed().as_secs_f64();
+            if stopped {
+                checkpoint(control, trainer, source, state, on_event)?;
+                return Ok(Outcome::Stopped);
+            }
+        }
+        if state
+            .curve
+            .last()
+            .is_none_or(|p| p.steps < trainer.state().step)
+        {
+            add_point(
+                trainer,
+                executor,
+                source,
+                state,
+                control,
+                f64::NAN,
+                on_event,
+            )?;
+        }
     }
     checkpoint(control, trainer, source, state, on_event)?;
     Ok(Outcome::Finished)
@@ -984,9 +1030,10 @@ pub struct ViewForgetting {
 }
 
 /// [`ViewForgetting`] of every held-out view scored on the fixed set (`fixed` holds a point
-/// per point of `curve`), in source order.
+/// per point of `curve`) before the last point, in source order (a view first scored at the
+/// last point has had no time to be forgotten).
 pub fn forgetting(curve: &[AnytimePoint], fixed: &[FixedSetPoint]) -> Vec<ViewForgetting> {
-    let Some(last) = fixed.last() else {
+    let Some((last, earlier)) = fixed.split_last() else {
         return Vec::new();
     };
     last.per_view
@@ -994,7 +1041,7 @@ pub fn forgetting(curve: &[AnytimePoint], fixed: &[FixedSetPoint]) -> Vec<ViewFo
         .filter_map(|&(position, last_psnr)| {
             let (point, fixed) = curve
                 .iter()
-                .zip(fixed)
+                .zip(earlier)
                 .find(|(p, _)| p.frames_seen > position)?;
             let &(_, first_psnr) = fixed.per_view.iter().find(|(p, _)| *p == position)?;
             Some(ViewForgetting {
@@ -1115,7 +1162,7 @@ pub fn resume<S: FrameSource + ?Sized>(
 
 /// A point of the offline reference's curve: its quality on the stream's held-out views
 /// after `steps` steps, and the wall time its training had taken by then.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct OfflinePoint {
     /// Training steps taken.
     pub steps: u32,
@@ -1123,6 +1170,8 @@ pub struct OfflinePoint {
     pub seconds: f64,
     /// Means over the stream's held-out views.
     pub metrics: ViewMetrics,
+    /// Each view's source position and whole-image PSNR.
+    pub per_view: Vec<(u64, f64)>,
 }
 
 /// The anytime curve as CSV: each point's seen-so-far scores, then (when given, else empty
@@ -1319,11 +1368,13 @@ pub fn offline_reference<E: Executor, S: FrameSource + ?Sized>(
         on_step(step);
         let done = step + 1;
         if at_steps.contains(&done) || done == config.steps {
-            let (metrics, _) = held_out_views_quality(&mut trainer, executor, source, state)?;
+            let (metrics, per_view) =
+                held_out_views_quality(&mut trainer, executor, source, state)?;
             points.push(OfflinePoint {
                 steps: done,
                 seconds,
                 metrics,
+                per_view,
             });
         }
     }
@@ -1363,7 +1414,7 @@ mod tests {
                 &info,
                 (store, Keep::Frames),
                 Replacement::Fifo,
-                17,
+                (17, 0),
             )
             .unwrap();
             let rays = stream_config(
@@ -1371,7 +1422,7 @@ mod tests {
                 &info,
                 (store, Keep::Rays { remember: None }),
                 Replacement::Fifo,
-                17,
+                (17, 0),
             )
             .unwrap();
             let (whole_bytes, ray_bytes) =
@@ -1407,7 +1458,7 @@ mod tests {
                     },
                 ),
                 Replacement::Fifo,
-                17,
+                (17, 0),
             )
             .unwrap();
             assert!(fewer.ray_store > rays.ray_store || rays.max_frames == store);
@@ -1428,7 +1479,7 @@ mod tests {
                 &info,
                 (2, Keep::Rays { remember }),
                 Replacement::Fifo,
-                1,
+                (1, 0),
             )
         };
         let whole = rays(None).unwrap();

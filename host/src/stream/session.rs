@@ -36,8 +36,19 @@ pub enum SourceKind {
 }
 
 /// The fraction of a stream's schedule (after warm-up) at the peak learning rate before the
-/// cosine decay starts, unless the config file sets `lr_decay_start`.
+/// cosine decay starts, unless the config file sets `lr_decay_start` or the stream settles
+/// (then the decay starts after the last arrival: [`settle_decay_start`]).
 pub const STREAM_LR_DECAY_START: f32 = 0.75;
+
+/// `lr_decay_start` of a schedule of `arrivals` steps while frames arrive and `settle` steps
+/// after them: the peak learning rate until the last arrival, the cosine decay over the settle.
+pub fn settle_decay_start(config: &Config, arrivals: u64, settle: u32) -> f32 {
+    let warmup = config.warmup_steps as u64;
+    let peak = arrivals.saturating_sub(warmup) as f64;
+    let span = (arrivals + settle as u64).saturating_sub(warmup).max(1) as f64;
+    // `lr_decay_start` lies in [0, 1); an f32 just below 1 still decays in the last step.
+    ((peak / span) as f32).clamp(0.0, 0.999_999)
+}
 
 /// The model a fresh stream trains (a resumed stream keeps its checkpoint's).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -53,8 +64,9 @@ pub struct ModelChoice {
 
 impl ModelChoice {
     /// The config of a fresh stream from a source of `kind`: the preset, the config file's
-    /// fields on top, then the seed; with a note saying which preset and why.
-    fn choose(&self, kind: &SourceKind) -> Result<ChosenConfig> {
+    /// fields on top, then the seed; with a note saying which preset and why. `schedule`: the
+    /// steps while frames arrive (when the source says how many it has) and of the settle.
+    fn choose(&self, kind: &SourceKind, schedule: (Option<u64>, u32)) -> Result<ChosenConfig> {
         let (preset, file) = (self.preset.as_deref(), self.config_file.as_deref());
         let mut chosen = match kind {
             SourceKind::DatasetFolder(dir) => pipeline::choose_config(preset, dir, file)?,
@@ -73,8 +85,8 @@ impl ModelChoice {
         }
         // A stream's own schedule, unless the config file says otherwise: rays drawn from
         // frames in proportion to their running loss (new views get the steps), and the peak
-        // learning rate held for most of the stream rather than decayed before the last
-        // frames arrive.
+        // learning rate held for most of the stream (until the last arrival when it settles)
+        // rather than decayed before the last frames arrive.
         let sets = |key: &str| file.map_or(Ok(false), |path| train::config_file_sets(path, key));
         let mut own = Vec::new();
         if !sets("loss_weighted_frames")? {
@@ -82,8 +94,13 @@ impl ModelChoice {
             own.push("loss_weighted_frames = true".to_string());
         }
         if !sets("lr_decay_start")? {
-            chosen.config.lr_decay_start = STREAM_LR_DECAY_START;
-            own.push(format!("lr_decay_start = {STREAM_LR_DECAY_START}"));
+            chosen.config.lr_decay_start = match schedule {
+                (Some(arrivals), settle) if settle > 0 => {
+                    settle_decay_start(&chosen.config, arrivals, settle)
+                }
+                _ => STREAM_LR_DECAY_START,
+            };
+            own.push(format!("lr_decay_start = {}", chosen.config.lr_decay_start));
         }
         if !own.is_empty() {
             let _ = write!(chosen.note, "; the stream's schedule: {}", own.join(", "));
@@ -360,10 +377,12 @@ impl StreamRequest {
         observer: &mut dyn StreamObserver,
     ) -> Result<(Config, StreamState)> {
         io::check_fresh_checkpoint(checkpoint_path, self.replace, "stream")?;
-        let chosen = self.model.choose(kind)?;
-        observer.note(&chosen.note);
         let mut info = source.info().clone();
         info.frames = info.frames.or(self.end_after);
+        let settings = &self.settings;
+        let arrivals = (info.frames).map(|n| n.saturating_mul(settings.steps_per_frame as u64));
+        let chosen = self.model.choose(kind, (arrivals, settings.settle_steps))?;
+        observer.note(&chosen.note);
         let config_file = self.model.config_file.as_deref();
         if let Some(stated) = pipeline::stated_box(self.scene_box, config_file)? {
             info.scene_box = Some((stated.min, stated.max));
@@ -383,7 +402,7 @@ impl StreamRequest {
             &info,
             (self.store, self.keep),
             self.replacement,
-            self.settings.steps_per_frame,
+            (settings.steps_per_frame, settings.settle_steps),
         )?;
         // The store takes the bytes of `store` whole frames, which must fit the memory limit
         // even where a ray reservoir (at most MAX_RAY_STORE pixels) would need fewer: so the
@@ -530,9 +549,16 @@ fn summary(
             .windows(2)
             .map(|w| w[0].metrics.psnr_full - w[1].metrics.psnr_full)
             .fold(0.0f64, f64::max);
+        let settle = match state.settle_from {
+            Some(from) if state.settings.settle_steps > 0 => format!(
+                " (the last after a settle of {} steps on the store from step {from})",
+                state.settings.settle_steps
+            ),
+            _ => String::new(),
+        };
         let _ = writeln!(
             text,
-            "- fixed set (all {} held-out views) at each point: PSNR {} dB; largest fall from one point to the next {:.2} dB",
+            "- fixed set (all {} held-out views) at each point: PSNR {} dB{settle}; largest fall from one point to the next {:.2} dB",
             last.views,
             psnr.join(", "),
             fall
@@ -542,15 +568,23 @@ fn summary(
     let change = |v: &super::ViewForgetting| v.last_psnr - v.first_psnr;
     if let Some(worst) = views.iter().min_by(|a, b| change(a).total_cmp(&change(b))) {
         let mean = views.iter().map(change).sum::<f64>() / views.len() as f64;
+        // The same view in the offline reference tells forgetting from a model that spreads
+        // what it holds over more views.
+        let offline_view = (offline.and_then(|o| o.points.last()))
+            .and_then(|p| p.per_view.iter().find(|(at, _)| *at == worst.position))
+            .map_or(String::new(), |(_, psnr)| {
+                format!("; the offline reference scores it {psnr:.2} dB")
+            });
         let _ = writeln!(
             text,
-            "- forgetting: each held-out view scored at the first point after it arrived and at the end: mean change {:+.2} dB; worst {:+.2} dB (arrival {}, first scored at {} frames seen: {:.2} -> {:.2} dB)",
+            "- forgetting: each held-out view scored at the first point after it arrived and at the end: mean change {:+.2} dB; worst {:+.2} dB (arrival {}, first scored at {} frames seen: {:.2} -> {:.2} dB{offline_view}); {} views scored before the last point",
             mean,
             change(worst),
             worst.position,
             worst.first_frames_seen,
             worst.first_psnr,
-            worst.last_psnr
+            worst.last_psnr,
+            views.len()
         );
     }
     if let Some((reference, last)) = offline.and_then(|o| Some((o, o.points.last()?))) {
@@ -616,7 +650,9 @@ mod tests {
                 config_file: file,
                 seed: None,
             };
-            choice.choose(&SourceKind::WatchedFolder).unwrap()
+            choice
+                .choose(&SourceKind::WatchedFolder, (None, 0))
+                .unwrap()
         };
         let own = choose(None);
         assert!(own.config.loss_weighted_frames);
@@ -641,5 +677,47 @@ mod tests {
         let one = choose(Some("lr_decay_start = 0.5\n"));
         assert!(one.config.loss_weighted_frames);
         assert_eq!(one.config.lr_decay_start, 0.5);
+    }
+
+    /// A stream that settles holds the peak learning rate until its last arrival and decays
+    /// over the settle: the core's decay (after warm-up, at `lr_decay_start` of the rest of
+    /// the schedule) starts within a step of the last arrival, whatever the warm-up; a
+    /// warm-up longer than the arrivals decays from its end. Unless the config file sets it.
+    #[test]
+    fn a_settling_stream_decays_its_learning_rate_over_the_settle_only() {
+        for (warmup, arrivals, settle) in [(100, 1560, 480), (0, 2040, 1), (250, 300, 10_000)] {
+            let config = Config {
+                warmup_steps: warmup,
+                steps: arrivals + settle,
+                ..Config::DEFAULT
+            };
+            let start = settle_decay_start(&config, arrivals as u64, settle);
+            assert!((0.0..1.0).contains(&start));
+            let decay_from = warmup as f64 + start as f64 * (config.steps - warmup) as f64;
+            assert!(
+                (decay_from - arrivals as f64).abs() < 1.0,
+                "{warmup} {arrivals} {settle}: decay from step {decay_from}"
+            );
+        }
+        let config = Config {
+            warmup_steps: 500,
+            ..Config::DEFAULT
+        };
+        assert_eq!(settle_decay_start(&config, 400, 100), 0.0);
+
+        let choice = ModelChoice {
+            preset: Some("spacecraft".into()),
+            ..ModelChoice::default()
+        };
+        let settles = choice.choose(&SourceKind::WatchedFolder, (Some(1560), 480));
+        let settles = settles.unwrap().config;
+        let expected = settle_decay_start(&settles, 1560, 480);
+        assert!(expected > STREAM_LR_DECAY_START - 0.1 && expected != STREAM_LR_DECAY_START);
+        assert_eq!(settles.lr_decay_start, expected);
+        // An unknown length (a watched folder) keeps the stream's fraction.
+        let unknown = choice
+            .choose(&SourceKind::WatchedFolder, (None, 480))
+            .unwrap();
+        assert_eq!(unknown.config.lr_decay_start, STREAM_LR_DECAY_START);
     }
 }

@@ -197,9 +197,7 @@ impl<'a> Trainer<'a> {
         self.profile.serial(&mut laps, Bucket::Train, Stage::Adam);
         report
     }
-}
 
-impl<'a> Trainer<'a> {
     /// Move each frame's running loss towards its rays' squared errors of this step, a ray at
     /// a time in batch order (each ray by `1 / FRAME_LOSS_RAYS` of the way, so a frame's loss
     /// follows its last few hundred rays).
