@@ -47,9 +47,12 @@ fn settings() -> StreamSettings {
         checkpoint_every: 4,
         fit_steps: 2,
         budget_ms: None,
-        settle_steps: 4,
+        settle_steps: Some(SETTLE),
     }
 }
+
+/// The settle's steps in [`settings`].
+const SETTLE: u32 = 4;
 
 /// Stream `source` into a fresh trainer (or the one saved at `checkpoint` when `resume`),
 /// stopping once the trainer has taken `stop_after` steps; returns the outcome and the final
@@ -85,7 +88,7 @@ fn stream_api_stopped_by(
             source.info(),
             store,
             Replacement::Novelty,
-            (settings().steps_per_frame, settings().settle_steps),
+            (settings().steps_per_frame, SETTLE),
         )
         .unwrap();
         let state = StreamState::new(settings(), config.max_frames as usize, source.info());
@@ -618,10 +621,7 @@ fn bad_frames_are_reported_once_and_skipped_while_the_stream_goes_on() {
         .section("state")
         .map(|bytes| u32::from_le_bytes(bytes[..4].try_into().unwrap()))
         .unwrap();
-    assert_eq!(
-        steps,
-        7 * settings().steps_per_frame + settings().settle_steps
-    );
+    assert_eq!(steps, 7 * settings().steps_per_frame + SETTLE);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -820,12 +820,19 @@ fn anytime_points_before_any_held_out_view_print_no_score() {
     let text = output_text(&out);
     assert!(out.status.success(), "{text}");
     let points: Vec<&str> = text.lines().filter(|l| l.contains(" steps: ")).collect();
-    assert_eq!(points.len(), 6, "{text}");
+    assert_eq!(points.len(), 7, "{text}");
     for line in &points[..3] {
         assert!(line.contains("no held-out view yet"), "{line}");
     }
     assert!(points[3].contains("PSNR") && points[3].contains("on the 1 held-out views"));
     assert!(!text.contains("NaN"), "{text}");
+    // Without --settle-steps the settle is as long as the arrivals: their 2 steps per frame.
+    let steps = |line: &str| -> u32 {
+        let before = line.split(" steps: ").next().unwrap();
+        before.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert!(points[6].contains("(after the settle)"), "{}", points[6]);
+    assert_eq!(steps(points[6]), 2 * steps(points[5]), "{text}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -880,7 +887,7 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
     assert!(budget.min >= 1 && budget.max >= budget.min, "{budget:?}");
     // Then the settle's steps, as many as asked, whatever the budget.
     assert_eq!(
-        Some(budget.steps as u32 + settings().settle_steps),
+        Some(budget.steps as u32 + SETTLE),
         finished.state.curve.last().map(|p| p.steps)
     );
     let summary = &finished.summary;

@@ -32,8 +32,10 @@ pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// field position). Version 5: the config gained the pose prior and refinement fields, and
 /// the training state the pose corrections' own update count. Version 6: the config gained
 /// `ray_store`, `loss_weighted_frames` and `lr_decay_start`, the training state the ray
-/// reservoir's counts and each frame slot's metadata its running loss.
-pub const FORMAT_VERSION: u32 = 6;
+/// reservoir's counts and each frame slot's metadata its running loss. Version 7: a stream
+/// checkpoint's `stream` section gained the settle (its settings' `settle_steps` and the
+/// step it began at); a training checkpoint differs from version 6 only in this number.
+pub const FORMAT_VERSION: u32 = 7;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 
@@ -639,11 +641,12 @@ mod tests {
     fn wrong_version() {
         let dir = tempfile::tempdir().unwrap();
         let (path, mut bytes) = saved(&dir);
-        bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+        let other = FORMAT_VERSION + 1;
+        bytes[8..12].copy_from_slice(&other.to_le_bytes());
         let message = load_err(&path, &bytes);
         assert!(
             message.contains(&format!(
-                "format version 7, this build reads version {FORMAT_VERSION}"
+                "format version {other}, this build reads version {FORMAT_VERSION}"
             )),
             "{message}"
         );

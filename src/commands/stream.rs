@@ -61,14 +61,14 @@ pub struct StreamArgs {
     pub policy: Policy,
     /// Training steps after each usable frame (with --budget-ms: the steps the learning-rate
     /// schedule expects per frame).
-    #[arg(long, default_value_t = 17, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = 9, value_parser = clap::value_parser!(u32).range(1..))]
     pub steps_per_frame: u32,
-    /// Training steps on the store after the source ends (the settle, 0 to 10^7): the
-    /// learning rate stays at its peak until the last arrival and decays over them, so the
-    /// last frames get the steps the first ones had; the settle gets its own point on the
-    /// anytime curve.
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=10_000_000))]
-    pub settle_steps: u32,
+    /// Training steps on the store after the source ends (the settle, 0 to 10^7; default: as
+    /// many as the stream had taken by then; 0: none): the learning rate stays at its peak
+    /// until the last arrival and decays over the settle, so the last frames get the steps
+    /// the first ones had; the settle gets its own point on the anytime curve.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=10_000_000))]
+    pub settle_steps: Option<u32>,
     /// Real-time mode: after each usable frame, train until this many milliseconds (1 to
     /// 3600000) have passed since it arrived, at least one step; the summary says how many
     /// steps frames managed. The result then depends on the machine's speed and load

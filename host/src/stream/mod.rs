@@ -74,9 +74,16 @@ pub struct StreamSettings {
     pub fit_steps: u32,
     /// Steps trained on the store after the source ends (the settle), with the learning rate
     /// decaying over them: the frames that came last get the steps the first ones had, and
-    /// the schedule need not decay while frames still arrive. 0: none.
-    #[serde(default)]
-    pub settle_steps: u32,
+    /// the schedule need not decay while frames still arrive. `None`: as many as the stream
+    /// had taken when the source ended ([`StreamSettings::settle`]); 0: no settle.
+    pub settle_steps: Option<u32>,
+}
+
+impl StreamSettings {
+    /// The settle's steps after a stream that had taken `arrival_steps` when its source ended.
+    pub fn settle(&self, arrival_steps: u32) -> u32 {
+        self.settle_steps.unwrap_or(arrival_steps)
+    }
 }
 
 /// The training steps frames managed in a real-time stream's budget
@@ -624,12 +631,12 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
             trainer, executor, source, state, control, per_frame, on_event,
         )?;
     }
-    if state.settings.settle_steps > 0 {
-        // The settle: the store trained on once the source has ended (a resumed stream
-        // finishes the one it began), then its own point on the curve.
-        let from = *state.settle_from.get_or_insert(trainer.state().step);
-        let owed =
-            (from.saturating_add(state.settings.settle_steps)).saturating_sub(trainer.state().step);
+    // The settle: the store trained on once the source has ended (a resumed stream finishes
+    // the one it began), then its own point on the curve.
+    let from = *state.settle_from.get_or_insert(trainer.state().step);
+    let settle = state.settings.settle(from);
+    if settle > 0 {
+        let owed = (from.saturating_add(settle)).saturating_sub(trainer.state().step);
         if owed > 0 {
             let started = Instant::now();
             let name = format!("{} (settle)", source.info().name);

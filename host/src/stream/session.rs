@@ -381,7 +381,10 @@ impl StreamRequest {
         info.frames = info.frames.or(self.end_after);
         let settings = &self.settings;
         let arrivals = (info.frames).map(|n| n.saturating_mul(settings.steps_per_frame as u64));
-        let chosen = self.model.choose(kind, (arrivals, settings.settle_steps))?;
+        // The settle a source of known length will get (by default as long as its arrivals).
+        let arrival_steps = arrivals.map_or(0, |n| n.min(u32::MAX as u64) as u32);
+        let settle = settings.settle(arrival_steps);
+        let chosen = self.model.choose(kind, (arrivals, settle))?;
         observer.note(&chosen.note);
         let config_file = self.model.config_file.as_deref();
         if let Some(stated) = pipeline::stated_box(self.scene_box, config_file)? {
@@ -402,7 +405,7 @@ impl StreamRequest {
             &info,
             (self.store, self.keep),
             self.replacement,
-            (settings.steps_per_frame, settings.settle_steps),
+            (settings.steps_per_frame, settle),
         )?;
         // The store takes the bytes of `store` whole frames, which must fit the memory limit
         // even where a ray reservoir (at most MAX_RAY_STORE pixels) would need fewer: so the
@@ -550,9 +553,9 @@ fn summary(
             .map(|w| w[0].metrics.psnr_full - w[1].metrics.psnr_full)
             .fold(0.0f64, f64::max);
         let settle = match state.settle_from {
-            Some(from) if state.settings.settle_steps > 0 => format!(
+            Some(from) if state.settings.settle(from) > 0 => format!(
                 " (the last after a settle of {} steps on the store from step {from})",
-                state.settings.settle_steps
+                state.settings.settle(from)
             ),
             _ => String::new(),
         };
