@@ -220,14 +220,14 @@ fn stop_and_resume(data: &Path, dir: &Path, keep: Keep) {
         "{whole_state:?}"
     );
     assert!(whole_state.curve.len() >= 6);
-    // 3 steps for each of the 30 usable frames, then the 4 steps of the settle, with a point
+    // 3 steps for each of the 30 usable frames, then the SETTLE steps of the settle, with a point
     // before it and one after.
     let settle_from = 30 * settings().steps_per_frame;
     assert_eq!(whole_state.settle_from, Some(settle_from));
     let ends: Vec<(u64, u32)> = (whole_state.curve[whole_state.curve.len() - 2..].iter())
         .map(|p| (p.frames_seen, p.steps))
         .collect();
-    assert_eq!(ends, [(30, settle_from), (30, settle_from + 4)]);
+    assert_eq!(ends, [(30, settle_from), (30, settle_from + SETTLE)]);
     if let Keep::Rays { remember } = keep {
         let (config, _) = stream::load(&whole).unwrap();
         let saved = checkpoint::load(&whole).unwrap();
@@ -904,7 +904,7 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
         "{summary}"
     );
     assert!(
-        summary.contains("the last after a settle of 4 steps"),
+        summary.contains(&format!("the last after a settle of {SETTLE} steps")),
         "{summary}"
     );
     assert!(summary.contains("- forgetting: "), "{summary}");

@@ -241,7 +241,6 @@ pub struct StreamState {
     #[serde(default)]
     pub budget_steps: BudgetSteps,
     /// The trainer's step count when the settle began (the source had ended); `None` before.
-    #[serde(default)]
     pub settle_from: Option<u32>,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
