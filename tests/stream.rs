@@ -689,6 +689,9 @@ impl FrameSource for StopAt<'_> {
     fn reload(&self, position: u64) -> orbit_nerf_host::Result<orbit_nerf_host::dataset::Frame> {
         self.inner.reload(position)
     }
+    fn exact_pose(&self, position: u64) -> orbit_nerf_host::Result<Option<orbit_nerf_core::Pose>> {
+        self.inner.exact_pose(position)
+    }
 }
 
 /// The step a stream checkpoint was saved at (its `state` section's first counter).
@@ -908,5 +911,76 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
         "{summary}"
     );
     assert!(summary.contains("- forgetting: "), "{summary}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Held-out views of a source that knows its frames' exact poses (a simulator folder's
+/// `truth.json`, the simulator itself) are scored there, not at their noisy labels, as the
+/// paper's test set is; a NeRF-synthetic folder, which has none, is scored at its labels.
+#[test]
+fn held_out_views_are_scored_at_exact_poses_where_the_source_knows_them() {
+    if common::shared_data().is_none() {
+        return;
+    }
+    let dir = temp_dir("exact-poses");
+    let data = dir.join("data");
+    simulated_set(&data, 10);
+    let mut source = DatasetSource::open(&data, None, None).unwrap();
+    assert!(source.info().exact_poses);
+    let truth = speedplus::load(&data, &Default::default())
+        .unwrap()
+        .true_poses()
+        .unwrap()
+        .unwrap();
+    let mut scene = Scene::load("lightbox").unwrap();
+    scene.spec.frames = 10;
+    scene.spec.size = 32;
+    let simulator = stream::SimulatorSource::new(&scene).unwrap();
+    assert!(simulator.info().exact_poses);
+    for (position, exact) in truth.iter().enumerate() {
+        let position = position as u64;
+        assert_eq!(source.exact_pose(position).unwrap(), Some(*exact));
+        assert_eq!(simulator.exact_pose(position).unwrap(), Some(*exact));
+        // The lightbox preset's labels are noisy.
+        assert_ne!(source.reload(position).unwrap().pose, *exact);
+    }
+
+    let checkpoint = dir.join("stream.onrf");
+    let (outcome, state) = stream_api(
+        &mut source,
+        (6, Keep::Frames),
+        &checkpoint,
+        None,
+        false,
+        &mut |_| {},
+    );
+    assert_eq!(outcome, Outcome::Finished);
+    let held_out = state.held_out[0];
+    let (config, _) = stream::load(&checkpoint).unwrap();
+    let mut arena = vec![0u8; MemoryPlan::new(&config).total];
+    let mut trainer = Trainer::new(config, &mut arena).unwrap();
+    stream::restore(&checkpoint, &mut trainer).unwrap();
+    let executor = RayonExecutor::new(2).unwrap();
+    let fit = settings().fit_steps;
+    let (_, scored) =
+        stream::held_out_quality(&mut trainer, &executor, &source, &[held_out], fit).unwrap();
+    let view = orbit_nerf_host::dataset::Dataset {
+        source: data.clone(),
+        frames: vec![source.reload(held_out).unwrap()],
+        scene_min: config.aabb_min,
+        scene_max: config.aabb_max,
+        scene_box: orbit_nerf_host::dataset::SceneBoxOrigin::Stated("the stream's config".into()),
+        background: source.info().background,
+        target_centred: false,
+    };
+    let at = |poses: Option<&[orbit_nerf_core::Pose]>, trainer: &mut Trainer<'_>| {
+        train::evaluate_at(trainer, &executor, &view, &[0], poses, (fit, false), None).unwrap()[0]
+            .metrics
+            .psnr_full
+    };
+    let exact = at(Some(&truth[held_out as usize..][..1]), &mut trainer);
+    let label = at(None, &mut trainer);
+    assert_eq!(scored, vec![(held_out, exact)]);
+    assert_ne!(exact, label);
     let _ = std::fs::remove_dir_all(&dir);
 }

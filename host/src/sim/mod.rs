@@ -346,6 +346,23 @@ impl<'s> FrameSimulator<'s> {
         self.target.triangle_count()
     }
 
+    /// Where frame `index` is seen from and how it is lit.
+    fn view(&self, index: u32) -> Result<trajectory::FrameView> {
+        let (center, radius) = (self.target.center(), self.target.radius());
+        let camera = self.camera_file.pinhole();
+        trajectory::frame_view(&self.scene.spec, center, radius, &camera, index)
+    }
+
+    /// The exact pose of frame `index` (what its `truth.json` entry holds), without rendering
+    /// it.
+    pub fn exact_pose(&self, index: u32) -> Result<orbit_nerf_core::Pose> {
+        let view = self.view(index)?;
+        let filename = frame_filename(index);
+        Label::new(filename.clone(), view.body_to_camera, view.target_in_camera)
+            .pose()
+            .ok_or_else(|| HostError::field(&filename, "q_vbs2tango_true", "not a valid pose"))
+    }
+
     /// Frame `index`: a pure function of the scene, its seed and the index. Fails when the
     /// frame's geometry is degenerate.
     pub fn render(&self, index: u32) -> Result<SimulatedFrame> {
@@ -359,8 +376,7 @@ impl<'s> FrameSimulator<'s> {
             seed: spec.seed,
         };
         let mut times = StageTimes::default();
-        let (center, radius) = (self.target.center(), self.target.radius());
-        let view = trajectory::frame_view(spec, center, radius, &renderer.camera, index)?;
+        let view = self.view(index)?;
         let filename = frame_filename(index);
         let (q, r) = match &spec.effects.label_noise {
             Some(noise) => times.time(Stage::LabelNoise, || {

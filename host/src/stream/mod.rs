@@ -903,8 +903,9 @@ fn ingest(
 }
 
 /// Mean held-out quality of the current model on the frames at `positions`, read again from
-/// the source one at a time (so the memory it takes does not grow with the stream); views that
-/// no longer read are left out. Returns the mean (NaN without views) and each view scored:
+/// the source one at a time (so the memory it takes does not grow with the stream), each at
+/// its exact pose where the source knows it (else at its label); views that no longer read are
+/// left out. Returns the mean (NaN without views) and each view scored:
 /// its source position and whole-image PSNR.
 pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
     trainer: &mut Trainer<'_>,
@@ -929,7 +930,16 @@ pub fn held_out_quality<E: Executor, S: FrameSource + ?Sized>(
             background: info.background,
             target_centred: false,
         };
-        let scores = train::evaluate(trainer, executor, &view, &[0], fit_steps, false, None)?;
+        let exact = source.exact_pose(position)?;
+        let scores = train::evaluate_at(
+            trainer,
+            executor,
+            &view,
+            &[0],
+            exact.as_ref().map(std::slice::from_ref),
+            (fit_steps, false),
+            None,
+        )?;
         per_view.extend(scores.iter().map(|s| s.metrics));
         scored.extend(scores.iter().map(|s| (position, s.metrics.psnr_full)));
     }
@@ -1411,6 +1421,7 @@ mod tests {
                 background: [0.0; 3],
                 max_pixels: side * side,
                 frames: Some(frames),
+                exact_poses: false,
             };
             let whole = stream_config(
                 &Config {
@@ -1478,6 +1489,7 @@ mod tests {
             background: [0.0; 3],
             max_pixels: 24 * 24,
             frames: Some(4),
+            exact_poses: false,
         };
         let rays = |remember| {
             stream_config(

@@ -354,7 +354,18 @@ impl StreamRequest {
                 Some(&fixed_set),
                 offline.as_ref().map(|o| o.points.as_slice()),
             )?;
-            let summary = summary(&state, trainer, seconds, &fixed_set, offline.as_ref());
+            let scored_at = if source.info().exact_poses {
+                "their exact poses"
+            } else {
+                "their labels"
+            };
+            let summary = summary(
+                &state,
+                (trainer, seconds),
+                scored_at,
+                &fixed_set,
+                offline.as_ref(),
+            );
             io::write_atomic(&self.out.join("summary.md"), summary.as_bytes())?;
             figures(&state, trainer, seconds, offline.as_ref()).write(&self.out)?;
             Ok(StreamEnd::Finished(Box::new(FinishedStream {
@@ -494,11 +505,12 @@ fn figures(
 
 /// The text of `summary.md`: the arrivals and what became of them, the steps and wall time,
 /// the bad frames, the streamed model's last held-out score, the offline reference's, and the
-/// resident memory once the store was full and at the end.
+/// resident memory once the store was full and at the end. `scored_at`: where the held-out
+/// views were rendered.
 fn summary(
     state: &StreamState,
-    trainer: &Trainer<'_>,
-    seconds: f64,
+    (trainer, seconds): (&Trainer<'_>, f64),
+    scored_at: &str,
     fixed_set: &[FixedSetPoint],
     offline: Option<&OfflineReference>,
 ) -> String {
@@ -539,7 +551,7 @@ fn summary(
     if let Some(last) = state.curve.last() {
         let _ = writeln!(
             text,
-            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views",
+            "- streamed model: held-out PSNR {:.2} dB (right half {:.2} dB, foreground {:.2} dB), SSIM {:.4}, on {} views (every held-out view rendered at {scored_at})",
             last.psnr, last.psnr_right, last.psnr_foreground, last.ssim, last.held_out_views
         );
     }

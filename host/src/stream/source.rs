@@ -21,6 +21,7 @@ use crate::formats::speedplus::{self, FrameDecoder, LoadOptions, SpeedCamera, Sp
 use crate::formats::transforms::{self, OutputSize};
 #[cfg(feature = "simulator")]
 use crate::sim::{FrameSimulator, Scene};
+use orbit_nerf_core::Pose;
 use std::cmp::Ordering as Order;
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -45,6 +46,9 @@ pub struct SourceInfo {
     pub max_pixels: usize,
     /// Frames the source will deliver, when it knows.
     pub frames: Option<u64>,
+    /// Whether the source knows its frames' exact poses ([`FrameSource::exact_pose`]: the
+    /// simulator, a SPEED+ folder with `truth.json`): held-out views are scored there.
+    pub exact_poses: bool,
 }
 
 /// One arriving frame: usable, or bad (the error names the file and the problem).
@@ -75,6 +79,12 @@ pub trait FrameSource {
     fn seek(&mut self, position: u64, arrived: &[String]) -> Result<()>;
     /// The frame at a past position again (held-out evaluation).
     fn reload(&self, position: u64) -> Result<Frame>;
+    /// The exact pose of the frame at a past position, where the source knows it
+    /// ([`SourceInfo::exact_poses`]); held-out views are scored there rather than at their
+    /// labels, as the paper's test set is.
+    fn exact_pose(&self, _position: u64) -> Result<Option<Pose>> {
+        Ok(None)
+    }
 }
 
 /// Another source with its frames' masks applied (`Frame::apply_mask`, the source's background
@@ -117,6 +127,9 @@ impl FrameSource for MaskedSource<'_> {
         let mut frame = self.inner.reload(position)?;
         frame.apply_mask(self.inner.info().background);
         Ok(frame)
+    }
+    fn exact_pose(&self, position: u64) -> Result<Option<Pose>> {
+        self.inner.exact_pose(position)
     }
 }
 
@@ -207,6 +220,7 @@ impl DatasetSource {
                     background: SYNTHETIC_BACKGROUND,
                     max_pixels: reader.output_pixels(),
                     frames: Some(reader.len() as u64),
+                    exact_poses: false,
                 };
                 (DatasetReader::Synthetic(reader), info)
             }
@@ -223,6 +237,7 @@ impl DatasetSource {
                     background: [0.0; 3],
                     max_pixels: reader.decoder.output_camera().pixel_count(),
                     frames: Some(reader.len() as u64),
+                    exact_poses: reader.truth.is_some(),
                 };
                 (DatasetReader::SpeedPlus(Box::new(reader)), info)
             }
@@ -274,6 +289,18 @@ impl FrameSource for DatasetSource {
     fn reload(&self, position: u64) -> Result<Frame> {
         self.reader.frame(position as usize)
     }
+
+    fn exact_pose(&self, position: u64) -> Result<Option<Pose>> {
+        let DatasetReader::SpeedPlus(reader) = &self.reader else {
+            return Ok(None);
+        };
+        let Some(truth) = &reader.truth else {
+            return Ok(None);
+        };
+        let label = reader.label(position as usize)?;
+        let path = reader.label_file.with_file_name("truth.json");
+        Ok(truth.poses_for(&path, &[label])?.pop())
+    }
 }
 
 /// The simulator, rendering the frames of a scene one by one as the stream asks for them.
@@ -307,6 +334,7 @@ impl<'s> SimulatorSource<'s> {
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: Some(scene.spec.frames as u64),
+            exact_poses: true,
         };
         Ok(SimulatorSource {
             simulator,
@@ -374,6 +402,10 @@ impl FrameSource for SimulatorSource<'_> {
     fn reload(&self, position: u64) -> Result<Frame> {
         self.frame(position as u32)
     }
+
+    fn exact_pose(&self, position: u64) -> Result<Option<Pose>> {
+        self.simulator.exact_pose(position as u32).map(Some)
+    }
 }
 
 /// When a watched-folder stream ends and how patiently it waits.
@@ -425,6 +457,9 @@ impl WatchedFolder {
             background: [0.0; 3],
             max_pixels: decoder.output_camera().pixel_count(),
             frames: None,
+            // Frames that arrive later than truth.json was written are not in it: held-out
+            // views are scored at their labels.
+            exact_poses: false,
         };
         Ok(WatchedFolder {
             dir: dir.to_path_buf(),
