@@ -633,6 +633,9 @@ fn a_nerf_synthetic_folder_streams_its_training_split_in_file_order() {
         return;
     }
     let mut source = DatasetSource::open(&lego, Some(40), None).unwrap();
+    // NeRF-synthetic has no exact poses beside its labels: held-out views are scored there.
+    assert!(!source.info().exact_poses);
+    assert_eq!(source.exact_pose(0).unwrap(), None);
     assert_eq!(source.info().max_pixels, 40 * 40);
     assert_eq!(source.info().background, [1.0; 3]);
     let stop = AtomicBool::new(false);
@@ -892,6 +895,16 @@ fn a_real_time_stream_trains_until_each_frame_is_due_and_says_how_many_steps_it_
     assert_eq!(
         Some(budget.steps as u32 + SETTLE),
         finished.state.curve.last().map(|p| p.steps)
+    );
+    // The schedule, open while frames arrived (a real-time stream cannot know how many steps
+    // they take), was planned anew when the settle began: the decay spans the settle.
+    let (config, _) = stream::load(&request.checkpoint_path()).unwrap();
+    let arrivals = budget.steps as u32;
+    assert_eq!(finished.state.settle_from, Some(arrivals));
+    assert_eq!(config.steps, (arrivals + SETTLE).max(config.warmup_steps));
+    assert_eq!(
+        config.lr_decay_start,
+        stream::session::settle_decay_start(&config, arrivals as u64, SETTLE)
     );
     let summary = &finished.summary;
     assert!(

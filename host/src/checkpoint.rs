@@ -35,7 +35,9 @@ pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// reservoir's counts and each frame slot's metadata its running loss. Version 7: a stream
 /// checkpoint's `stream` section gained the settle (its settings' `settle_steps` and the
 /// step it began at); a training checkpoint differs from version 6 only in this number.
-pub const FORMAT_VERSION: u32 = 7;
+/// Version 8: the `stream` section gained whether the settle plans the learning rate anew
+/// (`StreamState::decay_over_settle`); a training checkpoint differs only in this number.
+pub const FORMAT_VERSION: u32 = 8;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 

@@ -242,6 +242,11 @@ pub struct StreamState {
     pub budget_steps: BudgetSteps,
     /// The trainer's step count when the settle began (the source had ended); `None` before.
     pub settle_from: Option<u32>,
+    /// The learning rate follows the stream's own schedule (the config file did not set
+    /// `lr_decay_start`): when the settle begins it is planned anew, to decay over the settle
+    /// from the step the source ended at ([`settle_schedule`]), whatever the stream expected
+    /// (a watched folder, a real-time stream or bad frames take other step counts).
+    pub decay_over_settle: bool,
     /// Wall time of ingest and training so far (the curve's `seconds`).
     pub seconds: f64,
     /// This session's training steps, rays and samples (since the stream started or
@@ -268,6 +273,7 @@ impl StreamState {
             curve: Vec::new(),
             budget_steps: BudgetSteps::default(),
             settle_from: None,
+            decay_over_settle: false,
             seconds: 0.0,
             session: StepTally::default(),
         }
@@ -631,8 +637,19 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
         )?;
     }
     // The settle: the store trained on once the source has ended (a resumed stream finishes
-    // the one it began), then its own point on the curve.
-    let from = *state.settle_from.get_or_insert(trainer.state().step);
+    // the one it began, on the schedule saved with it), then its own point on the curve.
+    let from = match state.settle_from {
+        Some(from) => from,
+        None => {
+            let from = trainer.state().step;
+            state.settle_from = Some(from);
+            if state.decay_over_settle {
+                settle_schedule(trainer, from, state.settings.settle(from))
+                    .map_err(|e| core_error(&source.info().name, e))?;
+            }
+            from
+        }
+    };
     let settle = state.settings.settle(from);
     if settle > 0 {
         let owed = (from.saturating_add(settle)).saturating_sub(trainer.state().step);
@@ -664,6 +681,25 @@ pub fn run<E: Executor, S: FrameSource + ?Sized>(
     }
     checkpoint(control, trainer, source, state, on_event)?;
     Ok(Outcome::Finished)
+}
+
+/// Plan the learning rate anew when the settle begins at step `from`: `settle` more steps in
+/// all, the peak held until `from` and the cosine decay over the settle
+/// ([`session::settle_decay_start`]). A stream of known length that took the steps it
+/// expected gets the schedule it was planned with, bit for bit.
+pub fn settle_schedule(
+    trainer: &mut Trainer<'_>,
+    from: u32,
+    settle: u32,
+) -> core::result::Result<(), orbit_nerf_core::Error> {
+    let config = trainer.config();
+    let steps = from
+        .saturating_add(settle)
+        .max(config.warmup_steps)
+        .max(config.coarse_to_fine_steps)
+        .max(1);
+    let decay_start = session::settle_decay_start(config, from as u64, settle);
+    trainer.reschedule(steps, decay_start)
 }
 
 /// The steps the frame the stream took last still owes: a stop heard within a frame's steps
@@ -1092,14 +1128,17 @@ pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
     let mut points = Vec::with_capacity(state.curve.len());
     for index in 0..state.curve.len() {
         let path = snapshot_path(checkpoint_path, index);
-        if crate::pipeline::checkpoint_config(&path)? != *config {
+        // A snapshot from before the settle holds the schedule the settle planned anew.
+        let snapshot_config = crate::pipeline::checkpoint_config(&path)?;
+        if !same_model(&snapshot_config, config) {
             return Err(HostError::invalid(
                 &path,
                 "written by a stream with another config",
             ));
         }
         arena.fill(0);
-        let mut trainer = Trainer::new(*config, &mut arena).map_err(|e| core_error(&path, e))?;
+        let mut trainer =
+            Trainer::new(snapshot_config, &mut arena).map_err(|e| core_error(&path, e))?;
         train::restore_sections(&path, &mut trainer, &[], &SNAPSHOT_SECTIONS)?;
         let (metrics, per_view) = held_out_views_quality(&mut trainer, executor, source, state)?;
         points.push(FixedSetPoint {
@@ -1110,6 +1149,17 @@ pub fn fixed_set_curve<E: Executor, S: FrameSource + ?Sized>(
         on_point(index);
     }
     Ok(points)
+}
+
+/// Whether two configs describe the same model and training but for the learning-rate
+/// schedule, which a stream plans anew when its settle begins ([`settle_schedule`]).
+fn same_model(a: &Config, b: &Config) -> bool {
+    let unscheduled = |c: &Config| Config {
+        steps: 1,
+        lr_decay_start: 0.0,
+        ..*c
+    };
+    unscheduled(a) == unscheduled(b)
 }
 
 /// Name of the checkpoint section holding the [`StreamState`].
@@ -1504,5 +1554,43 @@ mod tests {
         assert_eq!((whole.ray_store, whole.max_frames), (0, 2));
         let refused = rays(Some(2)).unwrap_err().to_string();
         assert!(refused.contains("--keep frames"), "{refused}");
+    }
+
+    /// The settle plans the schedule of a stream that took the steps it expected exactly as
+    /// the stream was planned (the same bits), and one that took fewer or an open number
+    /// (real time, a watched folder) anew, decaying from where the frames ended.
+    #[test]
+    fn the_settle_keeps_a_schedule_that_was_right_and_plans_one_that_was_not() {
+        let tiny = crate::presets::config_of(Path::new("test"), "preset", "tiny").unwrap();
+        let (arrivals, settle) = (1080u32, 1080u32);
+        let planned = Config {
+            steps: arrivals + settle,
+            lr_decay_start: session::settle_decay_start(&tiny, arrivals as u64, settle),
+            ..tiny
+        };
+        let mut arena = vec![0u8; MemoryPlan::new(&planned).total];
+        let mut trainer = Trainer::new(planned, &mut arena).unwrap();
+        settle_schedule(&mut trainer, arrivals, settle).unwrap();
+        assert_eq!(*trainer.config(), planned);
+        assert_eq!(
+            trainer.config().lr_decay_start.to_bits(),
+            planned.lr_decay_start.to_bits()
+        );
+
+        let open = Config {
+            steps: u32::MAX,
+            ..planned
+        };
+        let mut arena = vec![0u8; MemoryPlan::new(&open).total];
+        let mut trainer = Trainer::new(open, &mut arena).unwrap();
+        settle_schedule(&mut trainer, 490, 490).unwrap();
+        let replanned = *trainer.config();
+        assert_eq!(replanned.steps, 980);
+        assert_eq!(
+            replanned.lr_decay_start,
+            session::settle_decay_start(&replanned, 490, 490)
+        );
+        assert!(same_model(&replanned, &open) && same_model(&replanned, &planned));
+        assert!(!same_model(&replanned, &Config { seed: 7, ..open }));
     }
 }

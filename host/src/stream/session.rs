@@ -66,7 +66,13 @@ impl ModelChoice {
     /// The config of a fresh stream from a source of `kind`: the preset, the config file's
     /// fields on top, then the seed; with a note saying which preset and why. `schedule`: the
     /// steps while frames arrive (when the source says how many it has) and of the settle.
-    fn choose(&self, kind: &SourceKind, schedule: (Option<u64>, u32)) -> Result<ChosenConfig> {
+    /// The second value says whether the learning rate follows the stream's own schedule
+    /// (the config file does not set `lr_decay_start`).
+    fn choose(
+        &self,
+        kind: &SourceKind,
+        schedule: (Option<u64>, u32),
+    ) -> Result<(ChosenConfig, bool)> {
         let (preset, file) = (self.preset.as_deref(), self.config_file.as_deref());
         let mut chosen = match kind {
             SourceKind::DatasetFolder(dir) => pipeline::choose_config(preset, dir, file)?,
@@ -93,7 +99,8 @@ impl ModelChoice {
             chosen.config.loss_weighted_frames = true;
             own.push("loss_weighted_frames = true".to_string());
         }
-        if !sets("lr_decay_start")? {
+        let own_schedule = !sets("lr_decay_start")?;
+        if own_schedule {
             chosen.config.lr_decay_start = match schedule {
                 (Some(arrivals), settle) if settle > 0 => {
                     settle_decay_start(&chosen.config, arrivals, settle)
@@ -105,7 +112,7 @@ impl ModelChoice {
         if !own.is_empty() {
             let _ = write!(chosen.note, "; the stream's schedule: {}", own.join(", "));
         }
-        Ok(chosen)
+        Ok((chosen, own_schedule))
     }
 }
 
@@ -395,7 +402,7 @@ impl StreamRequest {
         // The settle a source of known length will get (by default as long as its arrivals).
         let arrival_steps = arrivals.map_or(0, |n| n.min(u32::MAX as u64) as u32);
         let settle = settings.settle(arrival_steps);
-        let chosen = self.model.choose(kind, (arrivals, settle))?;
+        let (chosen, own_schedule) = self.model.choose(kind, (arrivals, settle))?;
         observer.note(&chosen.note);
         let config_file = self.model.config_file.as_deref();
         if let Some(stated) = pipeline::stated_box(self.scene_box, config_file)? {
@@ -411,13 +418,18 @@ impl StreamRequest {
                 box_text(min, max)
             ));
         }
-        let config = stream_config(
+        let mut config = stream_config(
             &chosen.config,
             &info,
             (self.store, self.keep),
             self.replacement,
             (settings.steps_per_frame, settle),
         )?;
+        // A stream that cannot know the step its frames end at (a watched folder, real time)
+        // holds the peak learning rate until they do; the settle plans its decay then.
+        if own_schedule && (info.frames.is_none() || settings.budget_ms.is_some()) {
+            config.steps = u32::MAX;
+        }
         // The store takes the bytes of `store` whole frames, which must fit the memory limit
         // even where a ray reservoir (at most MAX_RAY_STORE pixels) would need fewer: so the
         // frame in hand, the host's, fits too.
@@ -433,7 +445,8 @@ impl StreamRequest {
             crate::memory::limit_or_default(self.memory_limit),
         )?;
         let capacity = config.max_frames as usize;
-        let state = StreamState::new(self.settings.clone(), capacity, source.info());
+        let mut state = StreamState::new(self.settings.clone(), capacity, source.info());
+        state.decay_over_settle = own_schedule;
         Ok((config, state))
     }
 }
@@ -669,7 +682,8 @@ mod tests {
                 .choose(&SourceKind::WatchedFolder, (None, 0))
                 .unwrap()
         };
-        let own = choose(None);
+        let (own, own_schedule) = choose(None);
+        assert!(own_schedule);
         assert!(own.config.loss_weighted_frames);
         assert_eq!(own.config.lr_decay_start, STREAM_LR_DECAY_START);
         assert!(own.note.contains("the stream's schedule"), "{}", own.note);
@@ -678,9 +692,10 @@ mod tests {
             .config;
         assert!(!preset.loss_weighted_frames && preset.lr_decay_start == 0.0);
 
-        let stated = choose(Some(
+        let (stated, own_schedule) = choose(Some(
             "[config]\nlr_decay_start = 0.0\nloss_weighted_frames = false\n",
         ));
+        assert!(!own_schedule);
         assert!(!stated.config.loss_weighted_frames);
         assert_eq!(stated.config.lr_decay_start, 0.0);
         assert!(
@@ -689,7 +704,8 @@ mod tests {
             stated.note
         );
 
-        let one = choose(Some("lr_decay_start = 0.5\n"));
+        let (one, own_schedule) = choose(Some("lr_decay_start = 0.5\n"));
+        assert!(!own_schedule);
         assert!(one.config.loss_weighted_frames);
         assert_eq!(one.config.lr_decay_start, 0.5);
     }
@@ -725,14 +741,15 @@ mod tests {
             ..ModelChoice::default()
         };
         let settles = choice.choose(&SourceKind::WatchedFolder, (Some(1560), 480));
-        let settles = settles.unwrap().config;
+        let settles = settles.unwrap().0.config;
         let expected = settle_decay_start(&settles, 1560, 480);
         assert!(expected > STREAM_LR_DECAY_START - 0.1 && expected != STREAM_LR_DECAY_START);
         assert_eq!(settles.lr_decay_start, expected);
         // An unknown length (a watched folder) keeps the stream's fraction.
         let unknown = choice
             .choose(&SourceKind::WatchedFolder, (None, 480))
-            .unwrap();
+            .unwrap()
+            .0;
         assert_eq!(unknown.config.lr_decay_start, STREAM_LR_DECAY_START);
     }
 }

@@ -232,6 +232,23 @@ impl<'a> Trainer<'a> {
         &self.config
     }
 
+    /// Plan the learning-rate schedules anew for a run of `steps` steps in all, the cosine
+    /// decay starting at `lr_decay_start` of them after warm-up (`Config::steps` and
+    /// `Config::lr_decay_start`): a stream that did not know its length decays over the
+    /// steps it takes once its source has ended. Nothing else of the config changes; refused
+    /// (and nothing changed) where the config would not validate, e.g. `steps` below the
+    /// warm-up.
+    pub fn reschedule(&mut self, steps: u32, lr_decay_start: f32) -> Result<(), Error> {
+        let config = Config {
+            steps,
+            lr_decay_start,
+            ..self.config
+        };
+        config.validate()?;
+        self.config = config;
+        Ok(())
+    }
+
     /// Bytes actually taken from the arena, per part (equals `MemoryPlan::new(config)`
     /// except for `total`, which here excludes the alignment slack).
     pub fn memory_used(&self) -> MemoryPlan {

@@ -1115,3 +1115,43 @@ fn loss_weighted_draws_follow_the_frames_running_losses() {
     trainer.set_frame(1, camera, pose, &pixels, None).unwrap();
     assert_eq!(trainer.frames.meta[1].loss, learned);
 }
+
+/// A schedule planned anew changes the learning rates from the next step on and nothing else
+/// of the config; one the config would refuse (fewer steps than the warm-up, a decay start
+/// outside [0, 1)) leaves the trainer as it was.
+#[test]
+fn a_rescheduled_trainer_decays_over_its_new_steps_and_refuses_a_schedule_that_cannot_be() {
+    let mut config = small_config();
+    config.steps = u32::MAX;
+    config.warmup_steps = 4;
+    let plan = MemoryPlan::new(&config);
+    let mut arena = [0u8; 1 << 20];
+    let mut trainer = Trainer::new(config, &mut arena[..plan.total]).unwrap();
+    assert_eq!(
+        optim::learning_rate(trainer.config(), 99),
+        config.learning_rate
+    );
+    trainer.reschedule(200, 0.5).unwrap();
+    let rescheduled = *trainer.config();
+    assert_eq!((rescheduled.steps, rescheduled.lr_decay_start), (200, 0.5));
+    assert_eq!(
+        Config {
+            steps: config.steps,
+            lr_decay_start: config.lr_decay_start,
+            ..rescheduled
+        },
+        config
+    );
+    // The peak until half of the 196 steps after warm-up, the final rate at the last step.
+    assert_eq!(
+        optim::learning_rate(&rescheduled, 101),
+        config.learning_rate
+    );
+    let last = optim::learning_rate(&rescheduled, 199);
+    let end = config.learning_rate * config.final_lr_factor;
+    assert!((last - end).abs() < 1e-3 * config.learning_rate, "{last}");
+    for (steps, decay_start) in [(3, 0.5), (200, 1.0), (200, f32::NAN), (0, 0.0)] {
+        assert!(trainer.reschedule(steps, decay_start).is_err());
+        assert_eq!(*trainer.config(), rescheduled);
+    }
+}
