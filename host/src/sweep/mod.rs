@@ -393,6 +393,9 @@ impl SweepDescription {
                 dir.join(p)
             }
         };
+        // The label noise a simulated scene states (none: exact labels); a folder's labels
+        // state none. A task without a noise level of its own sizes its pose prior by it.
+        let mut scene_noise: Option<LabelNoise> = None;
         let source = match (&self.scene, &self.data) {
             (Some(_), Some(_)) => {
                 return Err(field("data", "give `scene` or `data`, not both".into()));
@@ -410,7 +413,15 @@ impl SweepDescription {
                 } else {
                     relative(Path::new(scene)).display().to_string()
                 };
-                Scene::load(&scene).map_err(|e| field("scene", e.to_string()))?;
+                let stated = Scene::load(&scene)
+                    .map_err(|e| field("scene", e.to_string()))?
+                    .spec
+                    .effects
+                    .label_noise;
+                scene_noise = Some(stated.unwrap_or(LabelNoise {
+                    rotation_deg: 0.0,
+                    translation_m: 0.0,
+                }));
                 Source::Scene(scene)
             }
             (None, Some(data)) => {
@@ -584,7 +595,10 @@ impl SweepDescription {
                     for &seed in &seeds {
                         let mut config = *config;
                         config.seed = seed;
-                        if let Some(noise) = level {
+                        // Each task's labels carry its level's noise, else the scene's: the
+                        // pose prior is sized by it as `ablate` sizes it (floored at
+                        // `LabelNoise::FLOOR_*`), unless the variant sets the prior.
+                        if let Some(noise) = level.or(scene_noise) {
                             noise.state_in(&mut config);
                         }
                         let level_name = level.map_or(String::new(), |n| {
@@ -1056,6 +1070,40 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
             c.pose_prior_position = LabelNoise::FLOOR_TRANSLATION_M;
             c
         });
+    }
+
+    /// A task without a noise level of its own trains on the labels its scene states (the
+    /// `inspection` preset's 0.8 degrees and 10 mm), and its pose prior is sized by them as
+    /// `ablate` sizes it; exact labels get the floor; a variant's own prior stays.
+    #[test]
+    fn a_scenes_stated_label_noise_sizes_the_prior_of_tasks_without_a_level() {
+        let prior = |text: &str| -> Vec<(f32, f32)> {
+            let (_dir, sweep) = read(text);
+            (sweep.unwrap().tasks.iter())
+                .map(|t| {
+                    (
+                        t.config.pose_prior_rotation_deg,
+                        t.config.pose_prior_position,
+                    )
+                })
+                .collect()
+        };
+        let pose = "[[variants]]\nname = \"pose\"\nset = { pose_correction = true }\n";
+        assert_eq!(
+            prior(&format!("scene = \"inspection\"\n{pose}")),
+            [(0.8, 0.01)]
+        );
+        let floor = (
+            LabelNoise::FLOOR_ROTATION_DEG,
+            LabelNoise::FLOOR_TRANSLATION_M,
+        );
+        assert_eq!(prior(&format!("scene = \"synthetic\"\n{pose}")), [floor]);
+        let own = "[[variants]]\nname = \"own\"\n\
+                   set = { pose_correction = true, pose_prior_rotation_deg = 3.0 }\n";
+        assert_eq!(
+            prior(&format!("scene = \"inspection\"\n{own}")),
+            [(3.0, 0.0)]
+        );
     }
 
     #[test]
