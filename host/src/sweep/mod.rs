@@ -597,7 +597,10 @@ impl SweepDescription {
                         config.seed = seed;
                         // Each task's labels carry its level's noise, else the scene's: the
                         // pose prior is sized by it as `ablate` sizes it (floored at
-                        // `LabelNoise::FLOOR_*`), unless the variant sets the prior.
+                        // `LabelNoise::FLOOR_*`), unless the variant sets the prior. A model
+                        // without pose correction never reads the scene's: its config stays
+                        // the one `train` builds on the same frames.
+                        let scene_noise = scene_noise.filter(|_| config.pose_correction);
                         if let Some(noise) = level.or(scene_noise) {
                             noise.state_in(&mut config);
                         }
@@ -1074,7 +1077,8 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
 
     /// A task without a noise level of its own trains on the labels its scene states (the
     /// `inspection` preset's 0.8 degrees and 10 mm), and its pose prior is sized by them as
-    /// `ablate` sizes it; exact labels get the floor; a variant's own prior stays.
+    /// `ablate` sizes it; exact labels get the floor; a variant's own prior stays, and one
+    /// without pose correction gets none.
     #[test]
     fn a_scenes_stated_label_noise_sizes_the_prior_of_tasks_without_a_level() {
         let prior = |text: &str| -> Vec<(f32, f32)> {
@@ -1098,6 +1102,11 @@ set = { embedding_dim = 8, pose_correction = true, learning_rate = 0.02 }
             LabelNoise::FLOOR_TRANSLATION_M,
         );
         assert_eq!(prior(&format!("scene = \"synthetic\"\n{pose}")), [floor]);
+        let plain = "[[variants]]\nname = \"plain\"\nset = { pose_correction = false }\n";
+        assert_eq!(
+            prior(&format!("scene = \"inspection\"\n{plain}")),
+            [(0.0, 0.0)]
+        );
         let own = "[[variants]]\nname = \"own\"\n\
                    set = { pose_correction = true, pose_prior_rotation_deg = 3.0 }\n";
         assert_eq!(
