@@ -37,7 +37,9 @@ pub const MAGIC: [u8; 8] = *b"ORBNERF\x01";
 /// step it began at); a training checkpoint differs from version 6 only in this number.
 /// Version 8: the `stream` section gained whether the settle plans the learning rate anew
 /// (`StreamState::decay_over_settle`); a training checkpoint differs only in this number.
-pub const FORMAT_VERSION: u32 = 8;
+/// Version 9: a ray reservoir's entries are 4 bytes (colour and mask) in one run per frame,
+/// and each frame slot's metadata holds its runs (`FrameMeta::rays`).
+pub const FORMAT_VERSION: u32 = 9;
 /// Magic + version + payload length + CRC-32.
 pub const HEADER_LEN: usize = MAGIC.len() + 4 + 8 + 4;
 

@@ -158,7 +158,7 @@ pub struct Config {
     /// Pixel capacity of one frame slot (width * height of the largest frame).
     pub max_pixels_per_frame: u32,
     /// 0: each frame slot keeps its whole frame. N > 0: the slots keep only camera, label and
-    /// learnable parameters, and N pixels of all the frames stored (10 bytes each) are kept
+    /// learnable parameters, and N pixels of all the frames stored (4 bytes each) are kept
     /// in one reservoir that every frame shares alike (`frames.rs`), so `max_frames` can be
     /// the most frames a stream remembers rather than the most it holds whole. At most
     /// 2^28.

@@ -6,16 +6,18 @@
 //!   and an optional foreground mask.
 //! - **A ray reservoir** (`ray_store` = N > 0): the slots keep only camera, label and
 //!   parameters (so a stream can remember many more frames than it could hold whole), and N
-//!   pixels of all the frames stored so far sit in one shared reservoir, each with its slot,
-//!   position and mask value ([`RayEntry`], 10 bytes). The reservoir has two parts, as the
-//!   training rays have: a share `foreground_fraction` of pixels drawn inside their frame's
-//!   foreground box and the rest drawn from the whole image. Each frame offers each part an
-//!   eighth of its size (distinct pixels while the region has that many), and the part keeps
-//!   offers by reservoir sampling (Vitter's algorithm R, the seeded RNG deciding), so once the
-//!   reservoir is full every frame stored so far holds the same share of it in expectation:
-//!   training sees the whole past, not only the latest frames. A frame put into an occupied
-//!   slot takes over its predecessor's entries (drawn from the new frame), so the reservoir
-//!   stays full; an emptied slot's entries are removed.
+//!   pixels of all the frames stored so far sit in one shared reservoir, 4 bytes each (colour
+//!   and mask value, [`RayEntry`]). The reservoir has two parts, as the training rays have: a
+//!   share `foreground_fraction` of pixels drawn inside their frame's foreground box and the
+//!   rest drawn from the whole image. In each part a frame holds one run of entries, the
+//!   first pixels of its region in a seeded order that spreads every prefix evenly over the
+//!   region ([`PixelSequence`]), so a pixel's position is implied by its place in the run and
+//!   costs no bytes. The runs lie in slot order, packed from the part's start. An arriving
+//!   frame gets an equal share of the part among the frames remembered (no more than its
+//!   region's pixels); the frames already held give up the tail of their runs to make room,
+//!   so every frame stored so far holds the same share once the part is full: training sees
+//!   the whole past, not only the latest frames. A frame put into an occupied slot replaces
+//!   its predecessor's run; an emptied slot's run is removed.
 
 use crate::rng::{self, domain};
 use crate::{Camera, Error, Pose};
@@ -48,6 +50,24 @@ pub struct FrameMeta {
     /// Running mean squared error of the frame's training rays (with
     /// `Config::loss_weighted_frames`; 0 otherwise).
     pub loss: f32,
+    /// The frame's run in each part of the ray reservoir (whole image, foreground box);
+    /// empty for whole frames.
+    pub rays: [RayRun; 2],
+}
+
+/// A frame's run of entries in one part of the ray reservoir: where it starts in the part,
+/// how many entries it holds, and its pixel order (see [`PixelSequence`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
+pub struct RayRun {
+    /// The run's first entry, counted from the part's start.
+    pub start: u32,
+    /// Entries in the run.
+    pub count: u32,
+    /// The sequence's first pixel, as an index into the region.
+    pub offset: u32,
+    /// The sequence's step, coprime to the region's pixel count.
+    pub stride: u32,
 }
 
 impl FrameMeta {
@@ -80,14 +100,12 @@ impl FrameMeta {
     }
 }
 
-/// One pixel kept in the ray reservoir: its frame slot, its position, its colour and its mask
-/// value (255 without a mask). Bytes only, so the reservoir is any byte buffer.
+/// One pixel kept in the ray reservoir: its colour and its mask value (255 without a mask).
+/// Its frame and position are implied by its place (see [`RayRun`]). Bytes only, so the
+/// reservoir is any byte buffer.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Pod, Zeroable)]
 pub struct RayEntry {
-    slot: [u8; 2],
-    x: [u8; 2],
-    y: [u8; 2],
     /// RGB8 colour.
     pub rgb: [u8; 3],
     /// Mask value (0 sky .. 255 target).
@@ -96,20 +114,17 @@ pub struct RayEntry {
 
 /// Bytes of one [`RayEntry`].
 pub const RAY_ENTRY_BYTES: usize = core::mem::size_of::<RayEntry>();
-const _: () = assert!(RAY_ENTRY_BYTES == 10);
+const _: () = assert!(RAY_ENTRY_BYTES == 4);
 
-impl RayEntry {
+/// A reservoir entry with where it came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RayPixel {
     /// The frame slot the pixel belongs to.
-    pub fn slot(&self) -> usize {
-        u16::from_le_bytes(self.slot) as usize
-    }
+    pub slot: usize,
     /// Pixel column and row.
-    pub fn position(&self) -> (u32, u32) {
-        (
-            u16::from_le_bytes(self.x) as u32,
-            u16::from_le_bytes(self.y) as u32,
-        )
-    }
+    pub position: (u32, u32),
+    /// Colour and mask value.
+    pub entry: RayEntry,
 }
 
 /// How full each part of the ray reservoir is and how many frames were offered to it: whole
@@ -229,18 +244,6 @@ impl<'a> FrameStore<'a> {
         self.keep_rays
     }
 
-    /// The ray reservoir's entries (empty for whole frames): the whole-image part, then the
-    /// foreground part, each filled from its start.
-    pub fn ray_entries(&self) -> &[RayEntry] {
-        if self.keeps_rays() {
-            bytemuck::cast_slice(
-                &self.pixels[..self.pixels.len() / RAY_ENTRY_BYTES * RAY_ENTRY_BYTES],
-            )
-        } else {
-            &[]
-        }
-    }
-
     /// Where each part of the reservoir starts and how many entries it can hold.
     fn ray_parts(&self) -> [(usize, usize); 2] {
         let total = self.pixels.len() / RAY_ENTRY_BYTES;
@@ -248,25 +251,48 @@ impl<'a> FrameStore<'a> {
         [(0, total - foreground), (total - foreground, foreground)]
     }
 
-    /// Reservoir entry `index` of `part` (0 whole image, 1 foreground box) among the filled
-    /// ones: the `n`-th is `ray_entry(part, n)` for `n < counts.filled[part]`.
-    pub(crate) fn ray_entry(&self, part: usize, index: usize) -> Option<RayEntry> {
-        let (start, len) = *self.ray_parts().get(part)?;
-        if index >= len {
-            return None;
+    /// The region of a frame that a part draws its pixels from: the whole image (part 0) or
+    /// the foreground box (part 1).
+    fn ray_region(meta: &FrameMeta, part: usize) -> [u32; 4] {
+        match part {
+            0 => [0, meta.width, 0, meta.height],
+            _ => meta.foreground_box(),
         }
-        let at = (start + index) * RAY_ENTRY_BYTES;
-        Some(bytemuck::pod_read_unaligned(
-            self.pixels.get(at..at + RAY_ENTRY_BYTES)?,
-        ))
     }
 
-    fn put_ray_entry(&mut self, part: usize, index: usize, entry: RayEntry) {
-        let (start, len) = self.ray_parts()[part];
-        if index < len {
-            let at = (start + index) * RAY_ENTRY_BYTES;
-            self.pixels[at..at + RAY_ENTRY_BYTES].copy_from_slice(bytemuck::bytes_of(&entry));
+    /// Reservoir entry `index` of `part` (0 whole image, 1 foreground box) among the filled
+    /// ones (`index < counts.filled[part]`), with its slot and position: the run holding it
+    /// is found by bisection over the runs, which lie in slot order.
+    pub fn ray(&self, part: usize, index: usize) -> Option<RayPixel> {
+        let (start, capacity) = *self.ray_parts().get(part)?;
+        if index >= capacity {
+            return None;
         }
+        let occupied = self.occupied.get(..self.len)?;
+        let run_of = |s: u16| {
+            self.meta
+                .get(s as usize)
+                .map_or(RayRun::default(), |m| m.rays[part])
+        };
+        let i = occupied.partition_point(|&s| {
+            let run = run_of(s);
+            (run.start as usize).saturating_add(run.count as usize) <= index
+        });
+        let slot = *occupied.get(i)? as usize;
+        let run = run_of(slot as u16);
+        let k = index.checked_sub(run.start as usize)?;
+        if k >= run.count as usize {
+            return None;
+        }
+        let meta = self.meta.get(slot)?;
+        let position = PixelSequence::of(Self::ray_region(meta, part), run).nth(k as u64);
+        let at = (start + index) * RAY_ENTRY_BYTES;
+        let entry = bytemuck::pod_read_unaligned(self.pixels.get(at..at + RAY_ENTRY_BYTES)?);
+        Some(RayPixel {
+            slot,
+            position,
+            entry,
+        })
     }
 
     /// RGB8 pixels of an occupied slot (`None` when the store keeps a ray reservoir).
@@ -368,57 +394,100 @@ impl<'a> FrameStore<'a> {
             arrival: 0,
             foreground,
             loss: 0.0,
+            // The predecessor's runs stay until `offer_rays` replaces them.
+            rays: self.meta[slot].rays,
         };
         self.rebuild_occupied();
         Ok(())
     }
 
     /// Empty a slot (no-op if it is already empty or out of range), removing its reservoir
-    /// entries.
+    /// runs.
     pub fn clear(&mut self, slot: usize, counts: &mut RayCounts) {
-        if let Some(m) = self.meta.get_mut(slot) {
-            *m = FrameMeta::default();
+        if self.meta.get(slot).is_some_and(|m| m.occupied != 0) {
+            for part in 0..2 {
+                if let Some(run) = self.meta.get_mut(slot).map(|m| &mut m.rays[part]) {
+                    run.count = 0;
+                }
+                self.pack_runs(part, None, counts);
+            }
+            self.meta[slot] = FrameMeta::default();
             self.rebuild_occupied();
-            self.remove_rays(slot, counts);
         }
     }
 
-    /// Remove the reservoir entries of `slot`, moving the last filled entry of the part into
-    /// each hole (the order of entries carries no meaning).
-    fn remove_rays(&mut self, slot: usize, counts: &mut RayCounts) {
-        for part in 0..2 {
-            let mut index = 0;
-            while index < counts.filled[part] as usize {
-                match self.ray_entry(part, index) {
-                    Some(entry) if entry.slot() == slot => {
-                        self.swap_remove_ray(part, index, counts)
-                    }
-                    Some(_) => index += 1,
-                    None => break,
+    /// Lay the runs of `part` out in slot order from the part's start, moving each to its
+    /// place (their counts may have shrunk; a run that does not fit the part, as a restored
+    /// checkpoint's might not, is dropped), and leave a gap of `gap.1` entries where slot
+    /// `gap.0`'s run goes (its old run is dropped). Updates the part's fill and returns where
+    /// the gap starts. Allocates
+    /// nothing: runs only move towards the start in the first pass, then those after the gap
+    /// towards the end, each with one `copy_within`.
+    fn pack_runs(
+        &mut self,
+        part: usize,
+        gap: Option<(usize, usize)>,
+        counts: &mut RayCounts,
+    ) -> usize {
+        let (base, capacity) = self.ray_parts()[part];
+        let gap_slot = gap.map(|(slot, _)| slot);
+        let (mut cursor, mut gap_start) = (0usize, 0usize);
+        for i in 0..self.len {
+            let slot = self.occupied[i] as usize;
+            let run = &mut self.meta[slot].rays[part];
+            let (from, count) = (run.start as usize, run.count as usize);
+            if Some(slot) == gap_slot {
+                gap_start = cursor;
+            }
+            if Some(slot) == gap_slot
+                || from.saturating_add(count) > capacity
+                || cursor + count > capacity
+            {
+                *run = RayRun {
+                    start: cursor as u32,
+                    count: 0,
+                    ..*run
+                };
+                continue;
+            }
+            run.start = cursor as u32;
+            let bytes = (base + from) * RAY_ENTRY_BYTES..(base + from + count) * RAY_ENTRY_BYTES;
+            self.pixels
+                .copy_within(bytes, (base + cursor) * RAY_ENTRY_BYTES);
+            cursor += count;
+        }
+        let mut end = cursor;
+        if let Some((gap_slot, gap)) = gap {
+            let gap = gap.min(capacity - cursor);
+            end = cursor + gap;
+            // The runs after the gap's slot move up by the gap, the last first.
+            for i in (0..self.len).rev() {
+                let slot = self.occupied[i] as usize;
+                let run = &mut self.meta[slot].rays[part];
+                if slot <= gap_slot {
+                    break;
                 }
+                let from = run.start as usize;
+                let count = run.count as usize;
+                run.start = (from + gap) as u32;
+                let bytes =
+                    (base + from) * RAY_ENTRY_BYTES..(base + from + count) * RAY_ENTRY_BYTES;
+                self.pixels
+                    .copy_within(bytes, (base + from + gap) * RAY_ENTRY_BYTES);
             }
         }
+        counts.filled[part] = end as u32;
+        gap_start
     }
 
-    /// Remove entry `index` of `part`, moving the part's last filled entry into its place.
-    fn swap_remove_ray(&mut self, part: usize, index: usize, counts: &mut RayCounts) {
-        counts.filled[part] -= 1;
-        let last = counts.filled[part] as usize;
-        if let Some(moved) = self.ray_entry(part, last) {
-            self.put_ray_entry(part, index, moved);
-        }
-    }
-
-    /// Give the frame just put into `slot` (by [`FrameStore::set`]) its share of the ray
-    /// reservoir: in each part, an equal share of the part among the frames remembered (one
-    /// over their number), but never more pixels than the part's region of the frame holds
-    /// (each pixel once, in a seeded stride permutation). First it takes over the entries of
-    /// the frame the slot held before (the rest of them leave the part), then it fills free
-    /// places, then it overwrites places drawn uniformly, so every earlier frame gives up
-    /// the same fraction of its entries and the first frames and the last are held alike.
-    /// Every choice comes from the seeded RNG keyed by the frames offered so far, so the
-    /// reservoir depends only on the seed and the frames in order. A no-op for whole frames.
-    /// Allocates nothing.
+    /// Give the frame just put into `slot` (by [`FrameStore::set`]) its run in each part of
+    /// the ray reservoir, replacing the run of the frame the slot held before: the largest
+    /// share such that every frame remembered can hold that many entries (or all its region's
+    /// pixels, or what it holds now, whichever is fewer); the others give up the tail of their
+    /// runs down to the share, and the new frame takes the first pixels of its
+    /// [`PixelSequence`] into the places left, up to its region's pixels. The sequence is
+    /// keyed by the seeded RNG and the frames offered so far, so the reservoir depends only on
+    /// the seed and the frames in order. A no-op for whole frames. Allocates nothing.
     pub(crate) fn offer_rays(
         &mut self,
         slot: usize,
@@ -426,7 +495,6 @@ impl<'a> FrameStore<'a> {
         mask: Option<&[u8]>,
         seed: u64,
         counts: &mut RayCounts,
-        replaced: bool,
     ) {
         let Some(meta) = self.meta(slot).copied() else {
             return;
@@ -434,65 +502,71 @@ impl<'a> FrameStore<'a> {
         if !self.keeps_rays() {
             return;
         }
-        let [fx0, fx1, fy0, fy1] = meta.foreground_box();
-        let regions = [[0, meta.width, 0, meta.height], [fx0, fx1, fy0, fy1]];
-        let remembered = self.len.max(1);
-        for (part, region) in regions.into_iter().enumerate() {
-            let (_, capacity) = self.ray_parts()[part];
+        for part in 0..2 {
+            let (base, capacity) = self.ray_parts()[part];
             if capacity == 0 {
                 continue;
             }
             let offer = counts.offered[part];
             counts.offered[part] = offer.saturating_add(1);
             let key = rng::hash(seed, domain::RESERVOIR, offer, part as u64);
-            let mut pick = PixelPicker::new(region, key);
-            // Past its area the picker would repeat pixels: a pixel kept twice is a byte
-            // wasted.
-            let share = (capacity.div_ceil(remembered) as u64).min(pick.area) as usize;
-            let entry_of = |picker: &mut PixelPicker| {
-                let (x, y) = picker.next();
+            let region = Self::ray_region(&meta, part);
+            let sequence = PixelSequence::new(region, key);
+            let area = sequence.area as usize;
+            let share = self.fair_share(part, slot, capacity, area);
+            for i in 0..self.len {
+                let other = self.occupied[i] as usize;
+                let run = &mut self.meta[other].rays[part];
+                run.count = (run.count as usize).min(share) as u32;
+            }
+            let held: usize = (0..self.len)
+                .map(|i| self.occupied[i] as usize)
+                .filter(|&other| other != slot)
+                .map(|other| self.meta[other].rays[part].count as usize)
+                .sum();
+            let take = area.min(capacity.saturating_sub(held));
+            let start = self.pack_runs(part, Some((slot, take)), counts);
+            self.meta[slot].rays[part] = RayRun {
+                start: start as u32,
+                count: take as u32,
+                offset: sequence.offset as u32,
+                stride: sequence.stride as u32,
+            };
+            for k in 0..take {
+                let (x, y) = sequence.nth(k as u64);
                 let at = (y * meta.width + x) as usize;
-                RayEntry {
-                    slot: (slot as u16).to_le_bytes(),
-                    x: (x as u16).to_le_bytes(),
-                    y: (y as u16).to_le_bytes(),
+                let entry = RayEntry {
                     rgb: core::array::from_fn(|ch| pixels.get(at * 3 + ch).copied().unwrap_or(0)),
                     alpha: mask.map_or(u8::MAX, |m| m.get(at).copied().unwrap_or(0)),
-                }
-            };
-            let mut placed = 0;
-            if replaced {
-                // The predecessor's entries, as many as the share; the rest leave the part
-                // (swap-removed: the entry moved into the hole is looked at next).
-                let mut index = 0;
-                while index < counts.filled[part] as usize {
-                    match self.ray_entry(part, index) {
-                        Some(e) if e.slot() == slot && placed < share => {
-                            let entry = entry_of(&mut pick);
-                            self.put_ray_entry(part, index, entry);
-                            placed += 1;
-                            index += 1;
-                        }
-                        Some(e) if e.slot() == slot => self.swap_remove_ray(part, index, counts),
-                        Some(_) => index += 1,
-                        None => break,
-                    }
-                }
-            }
-            for n in placed..share {
-                let filled = counts.filled[part] as usize;
-                let index = if filled < capacity {
-                    counts.filled[part] += 1;
-                    filled
-                } else {
-                    // A place drawn uniformly: every frame held gives up entries in
-                    // proportion to those it holds (this frame's own new ones included).
-                    rng::below(rng::hash(key, n as u64, 1, 0), capacity as u32) as usize
                 };
-                let entry = entry_of(&mut pick);
-                self.put_ray_entry(part, index, entry);
+                let to = (base + start + k) * RAY_ENTRY_BYTES;
+                self.pixels[to..to + RAY_ENTRY_BYTES].copy_from_slice(bytemuck::bytes_of(&entry));
             }
         }
+    }
+
+    /// The largest share `s` of a part of `capacity` entries such that the frames remembered,
+    /// each holding the fewer of `s` and what it holds now (`area` and `s` for the frame
+    /// arriving in `slot`), fit the part: found by bisection, as the total only grows with `s`.
+    fn fair_share(&self, part: usize, slot: usize, capacity: usize, area: usize) -> usize {
+        let total = |share: usize| {
+            (0..self.len)
+                .map(|i| self.occupied[i] as usize)
+                .map(|other| match other == slot {
+                    true => area.min(share),
+                    false => (self.meta[other].rays[part].count as usize).min(share),
+                })
+                .fold(0usize, usize::saturating_add)
+        };
+        let (mut fits, mut too_many) = (0usize, capacity + 1);
+        while too_many - fits > 1 {
+            let mid = fits + (too_many - fits) / 2;
+            match total(mid) <= capacity {
+                true => fits = mid,
+                false => too_many = mid,
+            }
+        }
+        fits
     }
 
     /// Record the stream arrival number of an occupied slot's frame.
@@ -514,38 +588,70 @@ impl<'a> FrameStore<'a> {
     }
 }
 
-/// Distinct pixels of a region `[x0, x1, y0, y1)` in a seeded order: `(stride * k + offset) mod
-/// area` with the stride coprime to the area visits every pixel once per `area` draws.
-struct PixelPicker {
+/// Distinct pixels of a region `[x0, x1, y0, y1)` in a seeded order whose every prefix is
+/// spread evenly over the region: the `k`-th is index `(offset + k * stride) mod area` of the
+/// region's pixels in row order, with the stride coprime to the area (so `area` draws visit
+/// every pixel once) and chosen so that each step moves about 0.755 of the width across and
+/// 0.570 of the height down: the R2 sequence's steps (the plastic number's powers), whose
+/// points keep their distance at every length. A random stride could be 1 and keep a band
+/// of rows.
+pub(crate) struct PixelSequence {
     region: [u32; 4],
+    width: u64,
     area: u64,
+    offset: u64,
     stride: u64,
-    next: u64,
 }
 
-impl PixelPicker {
-    fn new(region: [u32; 4], bits: u64) -> PixelPicker {
+/// The R2 sequence's steps in 32-bit fixed point: 1/p and 1/p^2 of the plastic number p.
+const R2_STEPS: [u64; 2] = [3_242_174_890, 2_447_445_414];
+
+impl PixelSequence {
+    /// The sequence of `region` with the offset drawn from `key`.
+    fn new(region: [u32; 4], key: u64) -> PixelSequence {
         let [x0, x1, y0, y1] = region;
-        let area = (x1.saturating_sub(x0) as u64 * y1.saturating_sub(y0) as u64).max(1);
-        let mut stride = ((bits >> 32) % area) | 1;
+        let width = x1.saturating_sub(x0).max(1) as u64;
+        let height = y1.saturating_sub(y0).max(1) as u64;
+        let area = width * height;
+        let across = (width * R2_STEPS[0]) >> 32;
+        let down = (height * R2_STEPS[1]) >> 32;
+        let mut stride = (down * width + across) % area;
+        // The step count to the next coprime stride is small (Jacobsthal's function).
         while gcd(stride, area) != 1 {
-            stride += 1;
+            stride = (stride + 1) % area;
         }
-        PixelPicker {
+        PixelSequence {
             region,
+            width,
             area,
+            offset: key % area,
             stride,
-            next: (bits & 0xffff_ffff) % area,
         }
     }
 
-    /// The next pixel's column and row.
-    fn next(&mut self) -> (u32, u32) {
-        let [x0, x1, y0, _] = self.region;
-        let index = self.next;
-        self.next = (self.next + self.stride) % self.area;
+    /// The sequence a stored run describes (a restored checkpoint is not trusted: any offset
+    /// and stride give positions inside the region).
+    fn of(region: [u32; 4], run: RayRun) -> PixelSequence {
+        let [x0, x1, y0, y1] = region;
         let width = x1.saturating_sub(x0).max(1) as u64;
-        (x0 + (index % width) as u32, y0 + (index / width) as u32)
+        let area = width * y1.saturating_sub(y0).max(1) as u64;
+        PixelSequence {
+            region,
+            width,
+            area,
+            offset: run.offset as u64 % area,
+            stride: run.stride as u64 % area,
+        }
+    }
+
+    /// The `k`-th pixel's column and row.
+    fn nth(&self, k: u64) -> (u32, u32) {
+        let [x0, _, y0, _] = self.region;
+        let index = (self.offset + (k % self.area) * self.stride) % self.area;
+        (
+            x0 + (index % self.width) as u32,
+            y0 + (index / self.width) as u32,
+        )
     }
 }
 
@@ -586,5 +692,41 @@ mod tests {
             ..FrameMeta::default()
         };
         assert_eq!(meta.foreground_box(), [0, w, 0, h]);
+    }
+
+    /// A frame's pixel sequence visits every pixel of its region once, and every prefix of it
+    /// is spread over the region: each quarter of a 24 x 17 region (odd sides, to test the
+    /// uneven split) holds its share of the first `m` pixels within a few pixels, where a
+    /// stride of 1 would fill the top rows first.
+    #[test]
+    fn a_pixel_sequence_is_a_permutation_whose_prefixes_cover_the_region() {
+        let region = [3, 27, 5, 22];
+        for key in [0u64, 1, 0x9e37_79b9_7f4a_7c15, u64::MAX] {
+            let sequence = PixelSequence::new(region, key);
+            let mut seen = [false; 24 * 17];
+            let mut quarters = [0i64; 4];
+            for k in 0..sequence.area {
+                let (x, y) = sequence.nth(k);
+                assert!((3..27).contains(&x) && (5..22).contains(&y));
+                let pixel = &mut seen[((y - 5) * 24 + x - 3) as usize];
+                assert!(
+                    !core::mem::replace(pixel, true),
+                    "key {key}: ({x}, {y}) twice"
+                );
+                quarters[(x >= 15) as usize + 2 * (y >= 13) as usize] += 1;
+                let m = k as i64 + 1;
+                if m >= 16 {
+                    // Quarter areas: 12 x 8 or 12 x 9 of the 24 x 17 pixels.
+                    for (q, &n) in quarters.iter().enumerate() {
+                        let expected = m * [96, 96, 108, 108][q] / 408;
+                        assert!(
+                            (n - expected).abs() <= 4 + m / 40,
+                            "key {key}, {m}: {quarters:?}"
+                        );
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&s| s));
+        }
     }
 }

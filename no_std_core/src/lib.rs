@@ -24,7 +24,7 @@ pub mod trainer;
 
 pub use camera::{Camera, Pose, PoseCorrection};
 pub use config::{Config, MAX_RAY_STORE, MemoryPlan, PosePivot, Replacement, TexelUpdate};
-pub use frames::{RAY_ENTRY_BYTES, RayCounts, RayEntry};
+pub use frames::{RAY_ENTRY_BYTES, RayCounts, RayEntry, RayPixel, RayRun};
 pub use fused::{allow_wide_vectors, wide_vectors};
 pub use glam;
 pub use replacement::Ingested;

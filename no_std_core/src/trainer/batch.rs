@@ -192,15 +192,14 @@ impl<'a> Trainer<'a> {
             (_, [0, _]) => 1,
             _ => 0,
         };
-        let entry = self
+        // A restored reservoir is not trusted: an entry no run holds is a black sky pixel of
+        // the first slot.
+        let ray = self
             .frames
-            .ray_entry(part, rng::below(bits, filled[part]) as usize)
-            .unwrap_or_default();
-        let slot = entry.slot();
-        let meta = self.frames.meta.get(slot).copied().unwrap_or_default();
-        // A restored reservoir is not trusted: keep its positions inside the slot's frame.
-        let (x, y) = entry.position();
-        let position = (x.min(meta.width.max(1) - 1), y.min(meta.height.max(1) - 1));
+            .ray(part, rng::below(bits, filled[part]) as usize);
+        let (slot, position, entry) = ray.map_or((0, (0, 0), crate::RayEntry::default()), |r| {
+            (r.slot, r.position, r.entry)
+        });
         (slot, position, entry.rgb, Some(entry.alpha))
     }
 }

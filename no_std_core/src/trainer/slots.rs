@@ -41,7 +41,7 @@ impl<'a> Trainer<'a> {
 
     /// Put a frame into `slot`. Its embedding starts at the mean of the other frames'
     /// embeddings, its pose correction at zero, and its optimizer moments are cleared. With a
-    /// ray reservoir the frame's pixels are offered to it (taking over the entries of the
+    /// ray reservoir the frame's pixels are offered to it (its runs replacing those of the
     /// frame the slot held before). With `Config::loss_weighted_frames` its running loss
     /// starts at the largest of the others', so it is drawn as often as the worst-fitted one
     /// until its own rays say otherwise.
@@ -54,20 +54,13 @@ impl<'a> Trainer<'a> {
         mask: Option<&[u8]>,
     ) -> Result<(), Error> {
         self.require_training()?;
-        let replaced = self.frames.meta(slot).is_some();
         let largest_loss = self.largest_frame_loss();
         self.frames.set(slot, camera, pose, pixels, mask)?;
         if let Some(meta) = self.frames.meta.get_mut(slot) {
             meta.loss = largest_loss;
         }
-        self.frames.offer_rays(
-            slot,
-            pixels,
-            mask,
-            self.config.seed,
-            &mut self.state.rays,
-            replaced,
-        );
+        self.frames
+            .offer_rays(slot, pixels, mask, self.config.seed, &mut self.state.rays);
         let n = self.config.frame_params();
         let dim = self.config.embedding_dim as usize;
         let mut mean = [0.0f32; 128];
