@@ -995,5 +995,10 @@ fn held_out_views_are_scored_at_exact_poses_where_the_source_knows_them() {
     let label = at(None, &mut trainer);
     assert_eq!(scored, vec![(held_out, exact)]);
     assert_ne!(exact, label);
+    // `eval`, `render` and `mesh` take a stream's checkpoint as the model it holds.
+    let reloaded = orbit_nerf_host::pipeline::with_checkpoint(&checkpoint, None, &[], |trainer| {
+        Ok::<_, orbit_nerf_host::HostError>(at(Some(&truth[held_out as usize..][..1]), trainer))
+    });
+    assert_eq!(reloaded.unwrap(), exact);
     let _ = std::fs::remove_dir_all(&dir);
 }

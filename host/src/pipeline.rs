@@ -558,7 +558,8 @@ pub fn checkpoint_parts(path: &Path) -> Result<Vec<Part>> {
 
 /// A trainer over a fresh arena holding the checkpoint at `path` (built from its own config,
 /// restored section by section: no copy of the model), the arena and the `resident` parts a
-/// command holds beside it checked against `memory_limit` first.
+/// command holds beside it checked against `memory_limit` first. A stream's checkpoint is a
+/// model like any other: its stream state is skipped.
 pub fn with_checkpoint<R, E: From<HostError>>(
     path: &Path,
     memory_limit: Option<u64>,
@@ -567,7 +568,7 @@ pub fn with_checkpoint<R, E: From<HostError>>(
 ) -> std::result::Result<R, E> {
     let config = checkpoint_config(path)?;
     with_trainer(path, (config, memory_limit), resident, &[], |trainer| {
-        train::restore_checkpoint(path, trainer, &[])?;
+        train::restore_checkpoint(path, trainer, &[crate::stream::STREAM_SECTION])?;
         f(trainer)
     })
 }

@@ -406,9 +406,7 @@ impl<'a> FrameStore<'a> {
     pub fn clear(&mut self, slot: usize, counts: &mut RayCounts) {
         if self.meta.get(slot).is_some_and(|m| m.occupied != 0) {
             for part in 0..2 {
-                if let Some(run) = self.meta.get_mut(slot).map(|m| &mut m.rays[part]) {
-                    run.count = 0;
-                }
+                self.meta[slot].rays[part].count = 0;
                 self.pack_runs(part, None, counts);
             }
             self.meta[slot] = FrameMeta::default();
@@ -609,24 +607,18 @@ const R2_STEPS: [u64; 2] = [3_242_174_890, 2_447_445_414];
 impl PixelSequence {
     /// The sequence of `region` with the offset drawn from `key`.
     fn new(region: [u32; 4], key: u64) -> PixelSequence {
-        let [x0, x1, y0, y1] = region;
-        let width = x1.saturating_sub(x0).max(1) as u64;
-        let height = y1.saturating_sub(y0).max(1) as u64;
-        let area = width * height;
+        let mut sequence = PixelSequence::of(region, RayRun::default());
+        let (width, area) = (sequence.width, sequence.area);
         let across = (width * R2_STEPS[0]) >> 32;
-        let down = (height * R2_STEPS[1]) >> 32;
+        let down = ((area / width) * R2_STEPS[1]) >> 32;
         let mut stride = (down * width + across) % area;
         // The step count to the next coprime stride is small (Jacobsthal's function).
         while gcd(stride, area) != 1 {
             stride = (stride + 1) % area;
         }
-        PixelSequence {
-            region,
-            width,
-            area,
-            offset: key % area,
-            stride,
-        }
+        sequence.offset = key % area;
+        sequence.stride = stride;
+        sequence
     }
 
     /// The sequence a stored run describes (a restored checkpoint is not trusted: any offset
