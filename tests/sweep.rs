@@ -599,6 +599,14 @@ fn the_paper_command_runs_the_main_table_on_each_training_set() {
         report.contains("3 views of `lightbox-test` (exact poses)"),
         "{report}"
     );
+    // The paper's own figures beside ours (its baseline on Lightbox, its method on Sunlamp).
+    assert!(
+        report.lines().any(|l| l.starts_with("| `lightbox` ")
+            && l.contains("| baseline ")
+            && l.contains("| 24.35 / 0.944 / - ")),
+        "{report}"
+    );
+    assert!(report.contains("| 27.14 / 0.951 / 0.0389 "), "{report}");
     for scene in ["synthetic", "lightbox", "sunlamp"] {
         assert!(out.join(format!("main-{scene}.toml")).is_file());
         for model in ["baseline", "ours + pose"] {
