@@ -32,7 +32,7 @@ pub use figures::{
 #[cfg(feature = "plots")]
 pub use plot::{labelled_scatter, line_plot};
 #[cfg(feature = "simulator")]
-pub use pose_noise::{ModelOutcome, NoiseLevelResult, pose_noise_sections};
+pub use pose_noise::{ModelOutcome, NoiseLevelResult, POSE_NOISE_TITLES, pose_noise_sections};
 pub use poses::{
     FramePose, PoseErrors, PoseUncertainty, frame_poses, pose_errors, pose_uncertainty,
     rotation_error_deg, rotation_error_split_deg, translation_error,

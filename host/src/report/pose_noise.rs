@@ -57,6 +57,9 @@ const ROTATION: SweepSpec = SweepSpec {
     error: |e| e.rotation_deg_mean,
 };
 
+/// The headings of the two sweeps' sections (`paper.md` takes the sections by them).
+pub const POSE_NOISE_TITLES: [&str; 2] = [ROTATION.title, TRANSLATION.title];
+
 const TRANSLATION: SweepSpec = SweepSpec {
     title: "Translation noise (exact attitudes)",
     column: "E_T mm",

@@ -5,12 +5,12 @@
 //! stopped and `sweep slurm` takes the same descriptions to a cluster; `paper.md` gathers
 //! the tables with the CPU that ran them.
 
-use super::results::{TaskResult, fixed, read_result};
+use super::results::{IMAGE_COUNT_TITLE, TaskResult, fixed, read_result};
 use super::studies::{Written, write_description};
 use super::{Source, Sweep, TestSet};
 use crate::error::{HostError, Result};
 use crate::io::write_atomic;
-use crate::report::markdown_table;
+use crate::report::{POSE_NOISE_TITLES, markdown_table};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -186,16 +186,13 @@ const PAPER_POSE_NOISE: &str = "\nThe paper gives these sweeps as plots only (`S
 /// The study sections of a sweep's `sweep.md` (the image-count table, the pose-noise tables)
 /// for `paper.md`: one heading level down, their plots linked inside the sweep's `folder`.
 fn study_sections(report: &str, folder: &str) -> String {
-    const STUDIES: [&str; 3] = [
-        "## Image-count study",
-        "## Rotation noise",
-        "## Translation noise",
-    ];
+    let [rotation, translation] = POSE_NOISE_TITLES;
+    let studies = [IMAGE_COUNT_TITLE, rotation, translation];
     let mut text = String::new();
     let mut inside = false;
     for line in report.lines() {
-        if line.starts_with("## ") {
-            inside = STUDIES.iter().any(|s| line.starts_with(s));
+        if let Some(heading) = line.strip_prefix("## ") {
+            inside = studies.contains(&heading);
         }
         if !inside {
             continue;

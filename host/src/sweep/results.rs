@@ -721,6 +721,9 @@ type StudyMetric = (
     usize,
 );
 
+/// The heading of the image-count section (`paper.md` takes the section by it).
+pub const IMAGE_COUNT_TITLE: &str = "Image-count study";
+
 /// The image-count study: per frame count and variant, the held-out PSNR, SSIM and JNB
 /// (means over the seeds) as a table laid out like the paper's, and their plots against the
 /// count (`image_counts_<metric>.png` in `out`).
@@ -763,7 +766,7 @@ fn image_count_section(sweep: &Sweep, results: &[TaskResult], out: &Path) -> Res
         })
         .collect();
     let header: Vec<&str> = header.iter().map(String::as_str).collect();
-    let mut text = String::from("\n## Image-count study\n\n");
+    let mut text = format!("\n## {IMAGE_COUNT_TITLE}\n\n");
     text.push_str(&markdown_table(&header, &rows));
     for (name, label, f, _) in metrics {
         let series: Vec<(&str, Vec<(f64, f64)>)> = (variants.iter())
