@@ -592,8 +592,26 @@ fn the_paper_command_runs_the_main_table_on_each_training_set() {
         let run = orbit_nerf(&args).output().unwrap();
         (run.status.success(), output_text(&run))
     };
+    // The cluster's route: the descriptions only, one sweep's tasks run as its Slurm array
+    // runs them, then the gathering runs the rest and skips those.
+    let (ok, text) = paper(&["--write-only"]);
+    assert!(ok && text.contains("sweep slurm"), "{text}");
+    assert!(out.join("main-synthetic.toml").is_file() && !out.join("main-synthetic").exists());
+    let description = out.join("main-synthetic.toml");
+    let folder = out.join("main-synthetic");
+    for index in ["0", "1"] {
+        let (description, folder) = (description.to_str().unwrap(), folder.to_str().unwrap());
+        let args = ["sweep", "run-task", description, index, "--out", folder];
+        let run = orbit_nerf(&args).output().unwrap();
+        assert!(run.status.success(), "{}", output_text(&run));
+    }
     let (ok, text) = paper(&[]);
     assert!(ok, "{text}");
+    assert!(
+        text.contains("main-synthetic:\n2 tasks: 2 finished earlier (skipped), 0 to run")
+            && text.contains("main-lightbox:\n2 tasks: 0 finished earlier (skipped), 2 to run"),
+        "{text}"
+    );
     let report = std::fs::read_to_string(out.join("paper.md")).unwrap();
     assert!(
         report.contains("3 views of `lightbox-test` (exact poses)"),

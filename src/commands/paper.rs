@@ -29,6 +29,11 @@ pub struct PaperArgs {
     /// on it).
     #[arg(long, value_parser = parse_threads)]
     threads: Option<usize>,
+    /// Only write the descriptions into --out (to run each with `sweep slurm` on a cluster,
+    /// or `sweep run`); the same command without this flag then gathers paper.md, running
+    /// only the tasks that have no result yet.
+    #[arg(long)]
+    write_only: bool,
 }
 
 /// `--tables`' values.
@@ -51,8 +56,24 @@ pub fn run(args: &PaperArgs) -> Fallible<()> {
     for given in &args.description {
         PaperSweep::replace(&mut sweeps, given)?;
     }
-    let exe = std::env::current_exe()?;
     let say = |line: String| println!("{line}");
+    if args.write_only {
+        for (sweep, described) in paper::describe(&sweeps, &args.out, &mut |line| say(line))? {
+            let (description, folder) = (sweep.description(&args.out), sweep.folder(&args.out));
+            println!(
+                "{}: {} tasks; on a cluster: `orbit-nerf sweep slurm {} --out {}`",
+                description.display(),
+                described.tasks.len(),
+                description.display(),
+                folder.display()
+            );
+        }
+        println!(
+            "once the tasks are done, `orbit-nerf paper` with the same --out and --tables (and --description) gathers paper.md"
+        );
+        return Ok(());
+    }
+    let exe = std::env::current_exe()?;
     let mut run_local = |description: &Path, out: &Path| {
         let jobs = (Some(args.jobs), args.threads);
         orbit_nerf_host::sweep::run::run_local(&exe, description, out, jobs, &say)

@@ -84,8 +84,13 @@ impl PaperSweep {
     }
 
     /// The description file in the output folder `out`.
-    fn description(&self, out: &Path) -> PathBuf {
+    pub fn description(&self, out: &Path) -> PathBuf {
         out.join(format!("{}.toml", self.name))
+    }
+
+    /// The sweep's folder in the output folder `out`.
+    pub fn folder(&self, out: &Path) -> PathBuf {
+        out.join(&self.name)
     }
 }
 
@@ -100,17 +105,15 @@ pub enum Table {
     PoseNoise,
 }
 
-/// Write every sweep's description into `out` (checked first; a folder holding another
-/// description under the same name is refused), run the unfinished tasks of each with
-/// `run_local` (the caller's runner: `sweep::run::run_local` with the binary), and write
-/// `out/paper.md`: the main table from the main sweeps' records, then a link to each other
-/// sweep's `sweep.md`. Returns `paper.md`'s text.
-pub fn run(
-    sweeps: &[PaperSweep],
+/// Write every sweep's description into `out` as `<name>.toml` (checked first; a folder
+/// holding another description under the same name is refused), each sweep's folder being
+/// `out/<name>`: what `sweep run` or `sweep slurm` takes, for [`run`] to gather afterwards.
+/// Returns each sweep with its description as read back.
+pub fn describe<'s>(
+    sweeps: &'s [PaperSweep],
     out: &Path,
-    run_local: &mut dyn FnMut(&Path, &Path) -> Result<String>,
     say: &mut dyn FnMut(String),
-) -> Result<String> {
+) -> Result<Vec<(&'s PaperSweep, Sweep)>> {
     let mut described = Vec::new();
     for sweep in sweeps {
         let path = sweep.description(out);
@@ -121,10 +124,25 @@ pub fn run(
         }
         described.push((sweep, checked));
     }
+    Ok(described)
+}
+
+/// Write every sweep's description into `out` ([`describe`]), run the unfinished tasks of
+/// each with `run_local` (the caller's runner: `sweep::run::run_local` with the binary;
+/// tasks finished earlier, here or by a cluster's array, are skipped), and write
+/// `out/paper.md`: the main table from the main sweeps' records, then each other sweep's
+/// study sections. Returns `paper.md`'s text.
+pub fn run(
+    sweeps: &[PaperSweep],
+    out: &Path,
+    run_local: &mut dyn FnMut(&Path, &Path) -> Result<String>,
+    say: &mut dyn FnMut(String),
+) -> Result<String> {
+    let described = describe(sweeps, out, say)?;
     let mut reports = Vec::new();
     for (sweep, _) in &described {
         say(format!("{}:", sweep.name));
-        reports.push(run_local(&sweep.description(out), &out.join(&sweep.name))?);
+        reports.push(run_local(&sweep.description(out), &sweep.folder(out))?);
     }
     let mut text = format!(
         "# The paper's tables\n\nWritten by `orbit-nerf paper --out {}` on {}. Each table is a sweep in its own folder (its description beside it, `<name>.toml`); rerunning the command continues unfinished tasks.\n",
