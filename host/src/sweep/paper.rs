@@ -8,6 +8,7 @@
 use super::results::{IMAGE_COUNT_TITLE, TaskResult, fixed, read_result};
 use super::studies::{Written, write_description};
 use super::{Source, Sweep, TestSet};
+use crate::ablation::BASELINE;
 use crate::error::{HostError, Result};
 use crate::io::write_atomic;
 use crate::report::{POSE_NOISE_TITLES, markdown_table};
@@ -41,21 +42,26 @@ pub struct PaperSweep {
     pub name: String,
     /// The description (TOML); relative paths in it are relative to the output folder.
     pub text: String,
+    /// The table it makes.
+    pub table: Table,
 }
 
 impl PaperSweep {
     /// The built-in sweeps of the tables asked for (`main`, `image-counts`, `pose-noise`).
     pub fn built_in(tables: &[Table]) -> Vec<PaperSweep> {
-        let sweep = |name: &str, text: &str| PaperSweep {
+        let sweep = |name: &str, text: &str, table: Table| PaperSweep {
             name: name.into(),
             text: text.into(),
+            table,
         };
         let mut sweeps = Vec::new();
-        for table in tables {
+        for &table in tables {
             match table {
-                Table::Main => sweeps.extend(MAIN.iter().map(|(name, text)| sweep(name, text))),
-                Table::ImageCounts => sweeps.push(sweep("image-counts", IMAGE_COUNTS)),
-                Table::PoseNoise => sweeps.push(sweep("pose-noise", POSE_NOISE)),
+                Table::Main => {
+                    sweeps.extend(MAIN.iter().map(|(name, text)| sweep(name, text, table)))
+                }
+                Table::ImageCounts => sweeps.push(sweep("image-counts", IMAGE_COUNTS, table)),
+                Table::PoseNoise => sweeps.push(sweep("pose-noise", POSE_NOISE, table)),
             }
         }
         sweeps
@@ -150,26 +156,24 @@ pub fn run(
         crate::machine::cpu_summary()
     );
     let main: Vec<(&PaperSweep, &Sweep)> = (described.iter())
-        .filter(|(s, _)| s.name.starts_with("main-"))
+        .filter(|(s, _)| s.table == Table::Main)
         .map(|(s, sweep)| (*s, sweep))
         .collect();
     if !main.is_empty() {
         text.push_str(&main_table(&main, out)?);
     }
     for ((sweep, _), report) in described.iter().zip(&reports) {
-        if sweep.name.starts_with("main-") {
-            continue;
-        }
+        let paper_says = match sweep.table {
+            Table::Main => continue,
+            Table::ImageCounts => PAPER_IMAGE_COUNTS,
+            Table::PoseNoise => PAPER_POSE_NOISE,
+        };
         let _ = write!(
             text,
             "\n## `{0}`\n\nEvery task's figures: [{0}/sweep.md]({0}/sweep.md).\n",
             sweep.name
         );
-        if sweep.name == "image-counts" {
-            text.push_str(PAPER_IMAGE_COUNTS);
-        } else if sweep.name == "pose-noise" {
-            text.push_str(PAPER_POSE_NOISE);
-        }
+        text.push_str(paper_says);
         text.push_str(&study_sections(report, &sweep.name));
     }
     write_atomic(&out.join("paper.md"), text.as_bytes())?;
@@ -251,7 +255,7 @@ fn main_table(main: &[(&PaperSweep, &Sweep)], out: &Path) -> Result<String> {
     let mut rows = Vec::new();
     let mut tests = Vec::new();
     for (paper_sweep, sweep) in main {
-        let dir = out.join(&paper_sweep.name);
+        let dir = paper_sweep.folder(out);
         let set = match &sweep.source {
             Source::Scene(scene) => scene.clone(),
             Source::Data(data) => data.display().to_string(),
@@ -270,7 +274,7 @@ fn main_table(main: &[(&PaperSweep, &Sweep)], out: &Path) -> Result<String> {
             let m = &result.metrics;
             let paper = (PAPER_MAIN.iter().find(|(name, _, _)| **name == *set))
                 .map(|(_, baseline, ours)| match result.variant.as_str() {
-                    "baseline" => baseline,
+                    name if name == BASELINE.name => baseline,
                     _ => ours,
                 })
                 .map_or(String::new(), |[psnr, ssim, jnb]| {
